@@ -1,0 +1,19 @@
+# Source me (bash/zsh) after `bash onnx/setup.sh`:   source onnx/env.sh
+# Exports the variables the project's Python scripts and the Rust ONNX path need. Idempotent,
+# prints nothing, never installs anything.
+GDRECON_VENV="${GDRECON_VENV:-$HOME/.cache/gdrecon/venv}"
+export GDRECON_VENV
+export GDRECON_PYTHON="$GDRECON_VENV/bin/python"
+if [ -z "${DRJIT_LIBLLVM_PATH:-}" ]; then
+  for _gdr_f in $(dpkg -L libllvm19 2>/dev/null | grep -E '/libLLVM\.so\.19(\.[0-9]+)*$') \
+                /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 /usr/lib/*/libLLVM-19.so; do
+    if [ -f "$_gdr_f" ]; then export DRJIT_LIBLLVM_PATH="$_gdr_f"; break; fi
+  done
+  unset _gdr_f
+fi
+if [ -z "${ORT_DYLIB_PATH:-}" ]; then
+  for _gdr_f in "$GDRECON_VENV"/lib/python3*/site-packages/onnxruntime/capi/libonnxruntime.so.*; do
+    if [ -f "$_gdr_f" ]; then export ORT_DYLIB_PATH="$_gdr_f"; break; fi
+  done
+  unset _gdr_f
+fi
