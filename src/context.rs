@@ -1,0 +1,57 @@
+//! The execution context: the thread pool every method runs on.
+//!
+//! Like an Open Image Denoise device, a context is created once and shared by the plans made
+//! from it. It never pins threads (hosts own their affinity) and takes an explicit thread
+//! count so a renderer can leave cores to its own pool. Results do not depend on the thread
+//! count: every parallel reduction in gdrecon has a fixed order.
+
+use std::sync::Arc;
+
+use crate::error::{Error, Result};
+
+/// Settings of a [`Context`].
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ContextOptions {
+    /// Worker threads; `None` uses every available core.
+    pub threads: Option<usize>,
+}
+
+/// A thread pool shared by plans. Cheap to clone (reference counted).
+#[derive(Clone, Debug)]
+pub struct Context {
+    pool: Arc<rayon::ThreadPool>,
+}
+
+impl Context {
+    /// Creates a context; fails on a zero thread count or when the OS refuses threads.
+    pub fn new(options: ContextOptions) -> Result<Self> {
+        if options.threads == Some(0) {
+            return Err(Error::arg(
+                "threads is 0: use at least 1, or leave it unset for all cores",
+            ));
+        }
+        let threads = options.threads.unwrap_or_else(|| {
+            std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(1)
+        });
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|i| format!("gdrecon-{i}"))
+            .build()
+            .map_err(|e| Error::Unsupported(format!("cannot start {threads} threads: {e}")))?;
+        Ok(Context {
+            pool: Arc::new(pool),
+        })
+    }
+
+    /// Number of worker threads.
+    pub fn threads(&self) -> usize {
+        self.pool.current_num_threads()
+    }
+
+    /// Runs `f` on this context's pool.
+    pub fn install<T: Send>(&self, f: impl FnOnce() -> T + Send) -> T {
+        self.pool.install(f)
+    }
+}

@@ -1,0 +1,62 @@
+//! The one error type of the library.
+//!
+//! Categories follow Intel Open Image Denoise's error codes (and the C ABI maps them one to
+//! one): a caller can branch on the category and show the message, which always names the
+//! offending value and what was expected.
+
+use std::path::PathBuf;
+
+/// Everything that can go wrong in gdrecon.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum Error {
+    /// A parameter is out of range or inconsistent (alpha < 0, zero threads, ...).
+    #[error("invalid argument: {0}")]
+    InvalidArgument(String),
+
+    /// The input frame is unusable: missing required layer, sizes that disagree, zero size,
+    /// or non-finite / negative values in strict mode.
+    #[error("invalid input: {0}")]
+    InvalidInput(String),
+
+    /// The request is valid but this build or machine cannot serve it.
+    #[error("unsupported: {0}")]
+    Unsupported(String),
+
+    /// Reading or writing a file failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file concerned.
+        path: PathBuf,
+        /// The operating system's error.
+        source: std::io::Error,
+    },
+
+    /// An OpenEXR file is damaged, is not EXR, or does not hold a frame bundle.
+    #[error("{path}: {message}")]
+    Exr {
+        /// The file concerned.
+        path: PathBuf,
+        /// What is wrong with it.
+        message: String,
+    },
+
+    /// The caller's progress callback asked to stop.
+    #[error("cancelled by the caller")]
+    Cancelled,
+}
+
+/// Shorthand used throughout the crate.
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+impl Error {
+    /// An [`Error::InvalidArgument`] from anything printable.
+    pub(crate) fn arg(msg: impl Into<String>) -> Self {
+        Error::InvalidArgument(msg.into())
+    }
+
+    /// An [`Error::InvalidInput`] from anything printable.
+    pub(crate) fn input(msg: impl Into<String>) -> Self {
+        Error::InvalidInput(msg.into())
+    }
+}

@@ -1,0 +1,153 @@
+//! Planar f32 images, the storage every layer of a frame and every output uses.
+//!
+//! An [`Image`] is an `ndarray` of shape `(channels, height, width)` in standard (row-major)
+//! layout: each channel is one contiguous plane, rows top to bottom, `y` growing downward and
+//! `x` to the right. Planar storage keeps the per-channel solvers (DCT, conjugate gradients,
+//! filters) on unit-stride rows; interleaved caller buffers are copied in once at validation.
+
+use ndarray::{Array3, ArrayView2, ArrayView3, ArrayViewMut2, Axis};
+
+use crate::error::{Error, Result};
+
+/// A planar image: `channels` planes of `height` x `width` f32 values.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    planes: Array3<f32>,
+}
+
+impl Image {
+    /// An image of zeros.
+    pub fn zeros(channels: usize, height: usize, width: usize) -> Self {
+        Image {
+            planes: Array3::zeros((channels, height, width)),
+        }
+    }
+
+    /// Wraps an array of shape `(channels, height, width)`; it is made contiguous if needed.
+    pub fn from_planes(planes: Array3<f32>) -> Self {
+        let planes = if planes.is_standard_layout() {
+            planes
+        } else {
+            planes.as_standard_layout().into_owned()
+        };
+        Image { planes }
+    }
+
+    /// Builds an image from a closure `f(channel, y, x)`.
+    pub fn from_fn(
+        channels: usize,
+        height: usize,
+        width: usize,
+        f: impl FnMut((usize, usize, usize)) -> f32,
+    ) -> Self {
+        Image {
+            planes: Array3::from_shape_fn((channels, height, width), f),
+        }
+    }
+
+    /// Copies an interleaved-or-strided view of shape `(height, width, channels)` (the natural
+    /// shape of a renderer's RGB buffer) into planar storage.
+    pub fn from_hwc(view: ArrayView3<'_, f32>) -> Self {
+        let planes = view
+            .permuted_axes([2, 0, 1])
+            .as_standard_layout()
+            .into_owned();
+        Image { planes }
+    }
+
+    /// Builds an image from a row-major interleaved buffer `[y][x][c]`.
+    pub fn from_interleaved(
+        data: &[f32],
+        channels: usize,
+        height: usize,
+        width: usize,
+    ) -> Result<Self> {
+        let view = ArrayView3::from_shape((height, width, channels), data).map_err(|_| {
+            Error::arg(format!(
+                "interleaved buffer holds {} floats, expected {height} x {width} x {channels} = {}",
+                data.len(),
+                height * width * channels
+            ))
+        })?;
+        Ok(Self::from_hwc(view))
+    }
+
+    /// Number of channels (planes).
+    pub fn channels(&self) -> usize {
+        self.planes.shape()[0]
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> usize {
+        self.planes.shape()[1]
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> usize {
+        self.planes.shape()[2]
+    }
+
+    /// `(width, height)`.
+    pub fn size(&self) -> (usize, usize) {
+        (self.width(), self.height())
+    }
+
+    /// The whole array, shape `(channels, height, width)`.
+    pub fn planes(&self) -> &Array3<f32> {
+        &self.planes
+    }
+
+    /// The whole array, mutable.
+    pub fn planes_mut(&mut self) -> &mut Array3<f32> {
+        &mut self.planes
+    }
+
+    /// Consumes the image, returning its array.
+    pub fn into_planes(self) -> Array3<f32> {
+        self.planes
+    }
+
+    /// One channel as a `(height, width)` view.
+    pub fn plane(&self, c: usize) -> ArrayView2<'_, f32> {
+        self.planes.index_axis(Axis(0), c)
+    }
+
+    /// One channel, mutable.
+    pub fn plane_mut(&mut self, c: usize) -> ArrayViewMut2<'_, f32> {
+        self.planes.index_axis_mut(Axis(0), c)
+    }
+
+    /// All samples, channel after channel (planar order).
+    pub fn as_slice(&self) -> &[f32] {
+        self.planes
+            .as_slice()
+            .expect("Image storage is always standard layout")
+    }
+
+    /// All samples, mutable.
+    pub fn as_mut_slice(&mut self) -> &mut [f32] {
+        self.planes
+            .as_slice_mut()
+            .expect("Image storage is always standard layout")
+    }
+
+    /// The value at channel `c`, pixel `(x, y)`.
+    pub fn at(&self, c: usize, x: usize, y: usize) -> f32 {
+        self.planes[[c, y, x]]
+    }
+
+    /// Copies the image into an interleaved `[y][x][c]` vector.
+    pub fn to_interleaved(&self) -> Vec<f32> {
+        self.planes
+            .view()
+            .permuted_axes([1, 2, 0])
+            .iter()
+            .copied()
+            .collect()
+    }
+
+    /// True when every sample is finite.
+    pub fn all_finite(&self) -> bool {
+        self.as_slice().iter().all(|v| v.is_finite())
+    }
+}

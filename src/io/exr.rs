@@ -1,0 +1,403 @@
+//! Frame bundles and output images as OpenEXR files (the `exr` crate).
+//!
+//! Reading follows the bundle format of the project's conventions: channels named
+//! `layer.component`, in one part with dotted names (what pbrt, Mitsuba and Blender write) or in
+//! parts named after the layer; any compression, scan lines or tiles, f16, f32 or u32 samples;
+//! components matched case-insensitively; layer aliases seen in the wild accepted
+//! ([`LAYER_ALIASES`]); unknown channels ignored and listed. The data window is the image: a
+//! window offset from the display window is read as is, and parts whose windows disagree are
+//! an error. Decoding runs single-threaded (`non_parallel`): the crate would otherwise build a
+//! thread pool per call, and callers own the threads.
+
+use std::collections::BTreeMap;
+use std::io::{BufReader, Cursor, Read, Seek};
+use std::path::{Path, PathBuf};
+
+use exr::prelude as x;
+use exr::prelude::{AttributeValue, FlatSamples, ReadChannels, ReadLayers};
+use smallvec::SmallVec;
+
+use crate::error::{Error, Result};
+use crate::frame::{Frame, FrameBuilder, Layer};
+use crate::image::Image;
+use crate::validate::Policy;
+
+/// Alternative layer names accepted on reading, besides the canonical (case-insensitive) one:
+/// pbrt's `Albedo`, `N`, `Ns`, `Variance`; Mitsuba's AOV names `nn`, `sh_normal`, `dd`.
+pub const LAYER_ALIASES: &[(&str, Layer)] = &[
+    ("n", Layer::Normal),
+    ("ns", Layer::Normal),
+    ("nn", Layer::Normal),
+    ("sh_normal", Layer::Normal),
+    ("dd", Layer::Depth),
+];
+
+/// What a bundle file holds before validation, as [`read_bundle_raw`] returns it.
+#[derive(Clone, Debug)]
+pub struct RawBundle {
+    /// Where it came from (`<memory>` for buffers).
+    pub path: PathBuf,
+    /// Width and height of the data window.
+    pub size: (usize, usize),
+    /// The recognised layers, as stored (nothing replaced yet).
+    pub layers: BTreeMap<Layer, Image>,
+    /// For each recognised layer, the channel names it was read from.
+    pub sources: BTreeMap<Layer, Vec<String>>,
+    /// Channels that belong to no recognised layer (ignored).
+    pub ignored: Vec<String>,
+    /// The `spp` attribute, when present and positive.
+    pub spp: Option<f32>,
+    /// Things worth telling that are not errors (a bad `spp` attribute, ...).
+    pub warnings: Vec<String>,
+}
+
+impl RawBundle {
+    /// Validates and sanitises the layers into a [`Frame`]; errors name the file.
+    pub fn into_frame(self, policy: Policy) -> Result<Frame> {
+        let path = self.path.clone();
+        let mut builder = FrameBuilder::new().spp(self.spp);
+        for (layer, img) in self.layers {
+            builder = builder.image(layer, img);
+        }
+        builder.build(policy).map_err(|e| match e {
+            Error::InvalidInput(m) => Error::InvalidInput(format!("{}: {m}", path.display())),
+            other => other,
+        })
+    }
+}
+
+/// Reads and validates a frame bundle.
+pub fn read_bundle(path: impl AsRef<Path>, policy: Policy) -> Result<Frame> {
+    read_bundle_raw(path)?.into_frame(policy)
+}
+
+/// Reads a frame bundle without validating it (for inspection: `gdrecon info`).
+pub fn read_bundle_raw(path: impl AsRef<Path>) -> Result<RawBundle> {
+    let path = path.as_ref();
+    let file = std::fs::File::open(path).map_err(|source| Error::Io {
+        path: path.to_owned(),
+        source,
+    })?;
+    parse_bundle(BufReader::new(file), path)
+}
+
+/// Reads a frame bundle from memory without validating it.
+pub fn read_bundle_from_bytes(bytes: &[u8]) -> Result<RawBundle> {
+    parse_bundle(Cursor::new(bytes), Path::new("<memory>"))
+}
+
+type AnyImage = x::Image<x::Layers<x::AnyChannels<FlatSamples>>>;
+
+fn decode(reader: impl Read + Seek, path: &Path) -> Result<AnyImage> {
+    x::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .non_parallel()
+        .from_buffered(reader)
+        .map_err(|e| exr_error(e, path))
+}
+
+fn exr_error(e: exr::error::Error, path: &Path) -> Error {
+    use exr::error::Error as E;
+    let message = match e {
+        E::Io(source) if source.kind() == std::io::ErrorKind::UnexpectedEof => {
+            "truncated or not an OpenEXR file (unexpected end of data)".to_owned()
+        }
+        E::Io(source) => {
+            return Error::Io {
+                path: path.to_owned(),
+                source,
+            }
+        }
+        E::Invalid(m) if m.contains("identifier") => format!("not an OpenEXR file ({m})"),
+        E::Invalid(m) => format!("damaged OpenEXR file: {m}"),
+        E::NotSupported(m) => format!("OpenEXR feature not supported: {m}"),
+        E::Aborted => "reading was aborted".to_owned(),
+    };
+    Error::Exr {
+        path: path.to_owned(),
+        message,
+    }
+}
+
+fn parse_bundle(reader: impl Read + Seek, path: &Path) -> Result<RawBundle> {
+    let image = decode(reader, path)?;
+    let err = |message: String| Error::Exr {
+        path: path.to_owned(),
+        message,
+    };
+    let first = image
+        .layer_data
+        .first()
+        .ok_or_else(|| err("the file has no image parts".into()))?;
+    let (w, h) = (first.size.0, first.size.1);
+    let origin = first.attributes.layer_position;
+    // (layer, component upper-case) -> (full channel name, samples)
+    let mut found: BTreeMap<Layer, Vec<(String, String, Vec<f32>)>> = BTreeMap::new();
+    let mut ignored = Vec::new();
+    let mut warnings = Vec::new();
+    let mut spp_attr = attribute_spp(&image.attributes.other);
+    for part in &image.layer_data {
+        let part_name = part.attributes.layer_name.as_ref().map(|t| t.to_string());
+        if (part.size.0, part.size.1) != (w, h) || part.attributes.layer_position != origin {
+            return Err(err(format!(
+                "part '{}' is {} x {} at {:?}, but the first part is {w} x {h} at {:?}: all \
+                 layers of a bundle must share one data window",
+                part_name.as_deref().unwrap_or(""),
+                part.size.0,
+                part.size.1,
+                part.attributes.layer_position,
+                origin
+            )));
+        }
+        spp_attr = spp_attr.or(attribute_spp(&part.attributes.other));
+        for channel in &part.channel_data.list {
+            let own = channel.name.to_string();
+            let full = match &part_name {
+                Some(p) if !p.is_empty() => format!("{p}.{own}"),
+                _ => own,
+            };
+            match split_name(&full) {
+                Some((layer, component)) => {
+                    let samples = to_f32(&channel.sample_data);
+                    found
+                        .entry(layer)
+                        .or_default()
+                        .push((full.clone(), component, samples));
+                }
+                None => ignored.push(full),
+            }
+        }
+    }
+    let spp = match spp_attr {
+        Some(s) if s.is_finite() && s > 0.0 => Some(s),
+        Some(s) => {
+            warnings.push(format!(
+                "attribute spp = {s} is not a positive number; treated as unknown"
+            ));
+            None
+        }
+        None => None,
+    };
+    let mut layers = BTreeMap::new();
+    let mut sources = BTreeMap::new();
+    for (layer, channels) in found {
+        match assemble(layer, channels, w, h) {
+            Ok((img, names, extra)) => {
+                layers.insert(layer, img);
+                sources.insert(layer, names);
+                ignored.extend(extra);
+            }
+            Err(message) => return Err(err(message)),
+        }
+    }
+    Ok(RawBundle {
+        path: path.to_owned(),
+        size: (w, h),
+        layers,
+        sources,
+        ignored,
+        spp,
+        warnings,
+    })
+}
+
+fn attribute_spp(attrs: &std::collections::HashMap<x::Text, AttributeValue>) -> Option<f32> {
+    attrs.iter().find_map(|(k, v)| {
+        if !k.to_string().eq_ignore_ascii_case("spp") {
+            return None;
+        }
+        match v {
+            AttributeValue::F32(f) => Some(*f),
+            AttributeValue::F64(f) => Some(*f as f32),
+            AttributeValue::I32(i) => Some(*i as f32),
+            _ => Some(f32::NAN),
+        }
+    })
+}
+
+/// `"color.R"` -> `(Color, "R")`; the layer part is matched case-insensitively against the
+/// canonical names, then the aliases. Splits on the last dot.
+fn split_name(full: &str) -> Option<(Layer, String)> {
+    let (layer, component) = full.rsplit_once('.')?;
+    let layer = Layer::from_name(layer).or_else(|| {
+        LAYER_ALIASES
+            .iter()
+            .find(|(alias, _)| alias.eq_ignore_ascii_case(layer))
+            .map(|(_, l)| *l)
+    })?;
+    Some((layer, component.to_ascii_uppercase()))
+}
+
+fn to_f32(samples: &FlatSamples) -> Vec<f32> {
+    match samples {
+        FlatSamples::F16(v) => v.iter().map(|h| h.to_f32()).collect(),
+        FlatSamples::F32(v) => v.clone(),
+        FlatSamples::U32(v) => v.iter().map(|&u| u as f32).collect(),
+    }
+}
+
+type Assembled = (Image, Vec<String>, Vec<String>);
+
+/// Picks the layer's components out of the channels found for it. A 3-channel layer may be
+/// stored as RGB or XYZ; depth as `Z`, `Y`, `T` or its only channel.
+fn assemble(
+    layer: Layer,
+    mut channels: Vec<(String, String, Vec<f32>)>,
+    w: usize,
+    h: usize,
+) -> Result<Assembled, String> {
+    let wanted: Vec<Vec<&str>> = match layer {
+        Layer::Depth => vec![vec!["Z"], vec!["Y"], vec!["T"], vec!["R"]],
+        Layer::Normal => vec![vec!["X", "Y", "Z"], vec!["R", "G", "B"]],
+        _ => vec![vec!["R", "G", "B"], vec!["X", "Y", "Z"]],
+    };
+    let pick = |set: &Vec<&str>, chans: &Vec<(String, String, Vec<f32>)>| -> Option<Vec<usize>> {
+        set.iter()
+            .map(|c| chans.iter().position(|(_, comp, _)| comp == c))
+            .collect()
+    };
+    let mut chosen = wanted.iter().find_map(|set| pick(set, &channels));
+    if chosen.is_none() && layer == Layer::Depth && channels.len() == 1 {
+        chosen = Some(vec![0]);
+    }
+    let Some(indices) = chosen else {
+        let have: Vec<&str> = channels.iter().map(|(n, _, _)| n.as_str()).collect();
+        return Err(format!(
+            "layer '{layer}' needs channels {} but the file has only {}",
+            layer
+                .components()
+                .iter()
+                .map(|c| format!("{layer}.{c}"))
+                .collect::<Vec<_>>()
+                .join(", "),
+            have.join(", ")
+        ));
+    };
+    let mut img = Image::zeros(indices.len(), h, w);
+    let mut names = Vec::new();
+    for (c, &i) in indices.iter().enumerate() {
+        let (name, _, samples) = &channels[i];
+        img.plane_mut(c)
+            .as_slice_mut()
+            .expect("planes are contiguous")
+            .copy_from_slice(samples);
+        names.push(name.clone());
+    }
+    let mut sorted = indices.clone();
+    sorted.sort_unstable_by(|a, b| b.cmp(a));
+    for i in sorted {
+        channels.remove(i);
+    }
+    let extra = channels.into_iter().map(|(n, _, _)| n).collect();
+    Ok((img, names, extra))
+}
+
+/// Reads an RGB image: the plain `R`, `G`, `B` channels of an output file, or else the
+/// `reference` layer of a bundle, or else its `color` layer. Non-finite values are kept
+/// (metrics refuse them).
+pub fn read_rgb(path: impl AsRef<Path>) -> Result<Image> {
+    let path = path.as_ref();
+    let file = std::fs::File::open(path).map_err(|source| Error::Io {
+        path: path.to_owned(),
+        source,
+    })?;
+    let image = decode(BufReader::new(file), path)?;
+    let part = image.layer_data.first().ok_or_else(|| Error::Exr {
+        path: path.to_owned(),
+        message: "the file has no image parts".into(),
+    })?;
+    let (w, h) = (part.size.0, part.size.1);
+    let find = |prefix: &str| -> Option<Image> {
+        let planes: Option<Vec<Vec<f32>>> = ["R", "G", "B"]
+            .iter()
+            .map(|c| {
+                let want = if prefix.is_empty() {
+                    c.to_string()
+                } else {
+                    format!("{prefix}.{c}")
+                };
+                part.channel_data
+                    .list
+                    .iter()
+                    .find(|ch| ch.name.to_string().eq_ignore_ascii_case(&want))
+                    .map(|ch| to_f32(&ch.sample_data))
+            })
+            .collect();
+        planes.map(|p| Image::from_fn(3, h, w, |(c, y, x)| p[c][y * w + x]))
+    };
+    find("")
+        .or_else(|| find("reference"))
+        .or_else(|| find("color"))
+        .ok_or_else(|| Error::Exr {
+            path: path.to_owned(),
+            message: "no RGB image: expected channels R, G, B (or reference.R/G/B, color.R/G/B)"
+                .into(),
+        })
+}
+
+fn write_channels(
+    path: &Path,
+    size: (usize, usize),
+    channels: SmallVec<[x::AnyChannel<FlatSamples>; 4]>,
+    spp: Option<f32>,
+) -> Result<()> {
+    let layer = x::Layer::new(
+        size,
+        x::LayerAttributes::default(),
+        x::Encoding::SMALL_LOSSLESS,
+        x::AnyChannels::sort(channels),
+    );
+    let mut image = x::Image::from_layer(layer);
+    if let Some(s) = spp {
+        image
+            .attributes
+            .other
+            .insert(x::Text::from("spp"), AttributeValue::F32(s));
+    }
+    use exr::prelude::WritableImage;
+    image
+        .write()
+        .non_parallel()
+        .to_file(path)
+        .map_err(|e| exr_error(e, path))
+}
+
+/// Writes a reconstruction: plain `R`, `G`, `B` f32 channels, ZIP compression.
+pub fn write_rgb(path: impl AsRef<Path>, image: &Image) -> Result<()> {
+    if image.channels() != 3 {
+        return Err(Error::arg(format!(
+            "write_rgb needs 3 channels, got {}",
+            image.channels()
+        )));
+    }
+    let channels = ["R", "G", "B"]
+        .iter()
+        .enumerate()
+        .map(|(c, name)| {
+            x::AnyChannel::new(
+                *name,
+                FlatSamples::F32(image.plane(c).iter().copied().collect()),
+            )
+        })
+        .collect();
+    write_channels(path.as_ref(), image.size(), channels, None)
+}
+
+/// Writes every layer of `frame` as a bundle (f32, ZIP, `spp` attribute when known).
+pub fn write_bundle(path: impl AsRef<Path>, frame: &Frame) -> Result<()> {
+    let mut channels = SmallVec::new();
+    for layer in frame.present_layers() {
+        let img = frame.layer(layer).expect("present");
+        for (c, comp) in layer.components().iter().enumerate() {
+            channels.push(x::AnyChannel::new(
+                format!("{layer}.{comp}").as_str(),
+                FlatSamples::F32(img.plane(c).iter().copied().collect()),
+            ));
+        }
+    }
+    write_channels(path.as_ref(), frame.size(), channels, frame.spp())
+}

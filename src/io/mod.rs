@@ -1,0 +1,10 @@
+//! Reading frame bundles and writing results: OpenEXR in and out, PNG previews.
+
+pub mod exr;
+pub mod png;
+
+pub use self::exr::{
+    read_bundle, read_bundle_from_bytes, read_bundle_raw, read_rgb, write_bundle, write_rgb,
+    RawBundle,
+};
+pub use self::png::write_png;

@@ -1,0 +1,105 @@
+//! Finite-difference operators on planes, and reductions with a fixed order.
+//!
+//! A plane is a row-major `&[f32]` of `h` rows of `w` values. `D_x` and `D_y` are the forward
+//! differences of the frame conventions with natural (Neumann) boundaries: only the `w - 1`
+//! horizontal and `h - 1` vertical differences exist, so the last column of `dx` and the last
+//! row of `dy` are never read.
+//!
+//! Every function is parallel over rows and writes each output value from reads only, and
+//! every reduction sums per-row partials serially, so results are bit-identical for any
+//! thread count.
+
+use rayon::prelude::*;
+
+/// Plane dimensions.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Dims {
+    pub w: usize,
+    pub h: usize,
+}
+
+impl Dims {
+    pub fn len(self) -> usize {
+        self.w * self.h
+    }
+}
+
+/// `out = D_x^T gx + D_y^T gy` (the negative divergence of the gradient field).
+pub(crate) fn grad_adjoint(gx: &[f32], gy: &[f32], d: Dims, out: &mut [f32]) {
+    let Dims { w, h } = d;
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let gxr = &gx[y * w..(y + 1) * w];
+        for x in 0..w {
+            let mut v = 0.0;
+            if x >= 1 {
+                v += gxr[x - 1];
+            }
+            if x + 1 < w {
+                v -= gxr[x];
+            }
+            if y >= 1 {
+                v += gy[(y - 1) * w + x];
+            }
+            if y + 1 < h {
+                v -= gy[y * w + x];
+            }
+            row[x] = v;
+        }
+    });
+}
+
+/// Per-row weights of the IRLS residual rows: `data` for `alpha (I - I_b)`, `x` and `y` for
+/// the gradient rows (last column of `x`, last row of `y` unused).
+pub(crate) struct RowWeights<'a> {
+    pub data: &'a [f32],
+    pub x: &'a [f32],
+    pub y: &'a [f32],
+}
+
+/// `out = alpha2 * wd * u + D_x^T (wx * D_x u) + D_y^T (wy * D_y u)`.
+pub(crate) fn apply_weighted(u: &[f32], alpha2: f32, wt: &RowWeights, d: Dims, out: &mut [f32]) {
+    let Dims { w, h } = d;
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let o = y * w;
+        let ur = &u[o..o + w];
+        for x in 0..w {
+            let i = o + x;
+            let c = ur[x];
+            let mut v = alpha2 * wt.data[i] * c;
+            if x >= 1 {
+                v += wt.x[i - 1] * (c - ur[x - 1]);
+            }
+            if x + 1 < w {
+                v -= wt.x[i] * (ur[x + 1] - c);
+            }
+            if y >= 1 {
+                v += wt.y[i - w] * (c - u[i - w]);
+            }
+            if y + 1 < h {
+                v -= wt.y[i] * (u[i + w] - c);
+            }
+            row[x] = v;
+        }
+    });
+}
+
+/// Sums of `f(a_i, b_i)` per plane of `plane_len` values, in f64, in a fixed order.
+/// `partials` is scratch reused between calls.
+pub(crate) fn plane_sums(
+    a: &[f32],
+    b: &[f32],
+    row: usize,
+    plane_len: usize,
+    partials: &mut Vec<f64>,
+    f: impl Fn(f32, f32) -> f64 + Sync,
+) -> Vec<f64> {
+    a.par_chunks(row)
+        .zip(b.par_chunks(row))
+        .map(|(ra, rb)| ra.iter().zip(rb).map(|(&x, &y)| f(x, y)).sum::<f64>())
+        .collect_into_vec(partials);
+    let rows_per_plane = plane_len / row;
+    partials
+        .chunks(rows_per_plane)
+        .map(|c| c.iter().sum())
+        .collect()
+}

@@ -1,0 +1,131 @@
+//! Screened Poisson reconstruction, L2: the exact minimiser of
+//! `||D_x I - dx||^2 + ||D_y I - dy||^2 + alpha^2 ||I - I_b||^2`, per channel.
+//!
+//! The normal equations `(alpha^2 + D^T D) I = alpha^2 I_b + D^T g` are solved exactly by the
+//! DCT (see [`super::dct`]): two 2-D transforms and a division, O(n log n). Gradient-domain path
+//! tracing's reference solver runs 50 unpreconditioned CG steps instead, which stops short of
+//! this minimiser; we solve it exactly.
+
+use super::dct::DctPoisson;
+use super::ops::{grad_adjoint, Dims};
+use super::{Method, Reconstructor};
+use crate::error::{Error, Result};
+use crate::frame::Frame;
+use crate::image::Image;
+use crate::progress::Progress;
+use crate::report::Report;
+
+/// Settings of the L2 screened Poisson solve.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PoissonL2Config {
+    /// Weight of the data term: residual rows are `alpha (I - I_b)`. 0 means pure Poisson with
+    /// the mean of `I_b`. Default 0.2.
+    pub alpha: f32,
+}
+
+impl Default for PoissonL2Config {
+    fn default() -> Self {
+        PoissonL2Config { alpha: 0.2 }
+    }
+}
+
+impl PoissonL2Config {
+    pub(crate) fn validate(&self) -> Result<()> {
+        check_alpha(self.alpha, 0.0)
+    }
+}
+
+pub(crate) fn check_alpha(alpha: f32, min_exclusive_or_zero: f32) -> Result<()> {
+    let ok = alpha.is_finite() && alpha <= 1e4 && alpha >= 0.0;
+    let ok = ok && (min_exclusive_or_zero == 0.0 || alpha > min_exclusive_or_zero);
+    if ok {
+        Ok(())
+    } else {
+        Err(Error::arg(format!(
+            "alpha is {alpha}, expected a finite value in {} 1e4]",
+            if min_exclusive_or_zero == 0.0 {
+                "[0,"
+            } else {
+                "(0,"
+            }
+        )))
+    }
+}
+
+/// A planned L2 solve for one size.
+pub struct PoissonL2 {
+    dims: Dims,
+    alpha: f32,
+    solver: DctPoisson,
+    rhs: Vec<f32>,
+}
+
+impl PoissonL2 {
+    /// Plans the solve for `width` x `height` frames.
+    pub fn new(config: PoissonL2Config, width: usize, height: usize) -> Result<Self> {
+        config.validate()?;
+        let dims = Dims {
+            w: width,
+            h: height,
+        };
+        Ok(PoissonL2 {
+            dims,
+            alpha: config.alpha,
+            solver: DctPoisson::new(dims, config.alpha),
+            rhs: vec![0.0; 3 * dims.len()],
+        })
+    }
+}
+
+/// Writes `alpha^2 b + D^T g` for the three channels into `rhs` (planar).
+pub(crate) fn screened_rhs(frame: &Frame, alpha2: f32, dims: Dims, rhs: &mut [f32]) {
+    let n = dims.len();
+    let (b, gx, gy) = (
+        frame.color().as_slice(),
+        frame.dx().as_slice(),
+        frame.dy().as_slice(),
+    );
+    for c in 0..3 {
+        let r = c * n..(c + 1) * n;
+        let plane = &mut rhs[r.clone()];
+        grad_adjoint(&gx[r.clone()], &gy[r.clone()], dims, plane);
+        for (v, &bv) in plane.iter_mut().zip(&b[r]) {
+            *v += alpha2 * bv;
+        }
+    }
+}
+
+impl Reconstructor for PoissonL2 {
+    fn method(&self) -> Method {
+        Method::PoissonL2
+    }
+
+    fn reconstruct_into(
+        &mut self,
+        frame: &Frame,
+        out: &mut Image,
+        report: &mut Report,
+        progress: &Progress,
+    ) -> Result<()> {
+        let alpha2 = self.alpha * self.alpha;
+        let dims = self.dims;
+        report.time("rhs", || screened_rhs(frame, alpha2, dims, &mut self.rhs));
+        progress.update(0.2)?;
+        report.time("dct solve", || self.solver.solve(&mut self.rhs));
+        if self.alpha == 0.0 {
+            // The DCT returned the zero-mean solution; the data term is gone, so take the mean
+            // from the base image (the only information about it).
+            let n = dims.len();
+            for c in 0..3 {
+                let b = &frame.color().as_slice()[c * n..(c + 1) * n];
+                let mean = (b.iter().map(|&v| f64::from(v)).sum::<f64>() / n as f64) as f32;
+                self.rhs[c * n..(c + 1) * n]
+                    .iter_mut()
+                    .for_each(|v| *v += mean);
+            }
+            report.note("alpha = 0: pure Poisson, mean taken from the base image");
+        }
+        out.as_mut_slice().copy_from_slice(&self.rhs);
+        progress.update(1.0)
+    }
+}
