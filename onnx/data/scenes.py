@@ -144,7 +144,7 @@ def base_dict(integrator_depth=8):
     }
 
 
-METALS = ["Au", "Cu", "Ag", "Al", "Cr", "CuZn", "W", "V"]
+METALS = ["Au", "Cu", "Ag", "Al", "Cr", "W", "Ni_palik", "Rh", "Ir", "Mo", "TiN"]
 
 # --------------------------------------------------------------------------------------------
 # scenes
@@ -216,7 +216,7 @@ def glass(W, H, rng=None):
     ior = u(rng, 1.5, 1.3, 1.8)
     s["ball"] = sphere([u(rng, -0.8, -1.2, -0.4), 0.75, u(rng, 0.2, -0.2, 0.6)], 0.75,
                        {"type": "dielectric", "int_ior": ior, "ext_ior": 1.0,
-                        "specular_transmittance": rgb(tint(rng, [1, 1, 1], 0.2) if rng is not None else [1, 1, 1])})
+                        "specular_transmittance": rgb([1, 1, 1] if rng is None else 1 - rng.uniform(0, 0.25, 3))})
     s["block"] = box([u(rng, 1.0, 0.7, 1.4), 0.5, u(rng, -0.3, -0.7, 0.1)], [0.45, 0.5, 0.45],
                      {"type": "roughdielectric", "int_ior": u(rng, 1.33, 1.3, 1.7),
                       "alpha": u(rng, 0.1, 0.03, 0.3),
@@ -282,8 +282,9 @@ def indirect(W, H, rng=None):
     wall = colour(rng, [0.75, 0.72, 0.68], sat=(0, 0.3), val=(0.55, 0.85))
     # room: x in [-2, 2], y in [0, 2.5], z in [-2, 2]; camera inside near the front wall
     # the camera looks away from the window (>= 43 degrees off-axis, half fov <= 39 degrees)
-    s["sensor"] = sensor(orbit(rng, [-1.5, 1.3, 1.8], [1.0, 0.7, -1.2], yaw=8, pitch=4, dist=0.05),
-                         [1.0, 0.7, -1.2], u(rng, 70.0, 62, 78))
+    cam = orbit(rng, [-1.5, 1.3, 1.8], [1.0, 0.7, -1.2], yaw=8, pitch=4, dist=0.05)
+    cam = list(np.clip(cam, [-1.85, 0.3, -1.85], [1.85, 2.2, 1.85]))  # stay inside the room
+    s["sensor"] = sensor(cam, [1.0, 0.7, -1.2], u(rng, 70.0, 62, 78))
     s["floor"] = rect([0, 0, 0], [0, 1, 0], 2, 2, diffuse(colour(rng, [0.55, 0.45, 0.35])))
     s["ceiling"] = rect([0, 2.5, 0], [0, -1, 0], 2, 2, diffuse(wall))
     s["back"] = rect([0, 1.25, -2], [0, 0, 1], 2, 1.25, diffuse(wall))
