@@ -66,9 +66,9 @@ if command -v dpkg >/dev/null 2>&1; then
 fi
 
 # --- 2. the virtual environment -----------------------------------------------------------------
-if ! "$py" -c 'import venv, ensurepip' >/dev/null 2>&1; then
-  log "$py lacks venv/ensurepip: installing python3-venv (apt)"
-  apt_install python3-venv python3-pip
+if ! command -v "$py" >/dev/null 2>&1; then
+  log "$py not found: installing python3 (apt)"
+  apt_install python3 python3-venv
 fi
 pyver="$("$py" -c 'import sys; print("%d.%d.%d" % sys.version_info[:3])')"
 
@@ -89,7 +89,13 @@ else
   if [ ! -x "$venv/bin/python" ]; then
     log "creating venv $venv with $py ($pyver)"
     mkdir -p "$(dirname "$venv")"
-    "$py" -m venv "$venv"
+    if ! "$py" -m venv "$venv"; then
+      # Debian's system python needs python3-venv (ensurepip) to create a venv
+      log "venv creation failed: installing python3-venv (apt) and retrying"
+      rm -rf "$venv"
+      apt_install python3-venv
+      "$py" -m venv "$venv"
+    fi
   fi
   req="$here/requirements.txt"
   [ $mode = render ] && req="$here/requirements-render.txt"

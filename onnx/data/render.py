@@ -331,6 +331,8 @@ def main(argv=None):
     ap.add_argument("--full-float", action="store_true", help="write features as f32 too")
     ap.add_argument("--out", required=True, help="output folder")
     ap.add_argument("--name", default=None, help="file name stem (default <scene>[_p<I>]_<spp>spp)")
+    ap.add_argument("--skip-existing", action="store_true",
+                    help="do not re-render a scene/perturbation whose bundles all exist")
     ap.add_argument("--manifest", default="manifest.jsonl", help="jsonl log in --out ('' for none)")
     args = ap.parse_args(argv)
 
@@ -349,7 +351,15 @@ def main(argv=None):
             # per-frame seed: base seed combined with the scene and perturbation so frames differ
             sid = list(scenes.SCENES).index(name)
             fseed = args.seed if (pi is None and len(names) == 1) else derive_seed(args.seed, sid, -1 if pi is None else pi)
-            t0 = time.time()
+            stems = []
+            for spp in spps:
+                stem = args.name or (f"{name}" + ("" if pi is None else f"_p{pi:04d}") + f"_{spp}spp")
+                if args.name and (len(spps) > 1 or len(names) > 1 or len(perturbs) > 1):
+                    stem = f"{args.name}_{name}" + ("" if pi is None else f"_p{pi:04d}") + f"_{spp}spp"
+                stems.append(stem)
+            if args.skip_existing and all(os.path.exists(os.path.join(args.out, s + ".exr")) for s in stems):
+                print(f"# skip {name} perturb={pi}: bundles exist", flush=True)
+                continue
             frame = Frame(name, W, H, pi, args.perturb_seed, args.max_depth)
             ref = None
             t_ref = 0.0
@@ -357,15 +367,12 @@ def main(argv=None):
                 t1 = time.time()
                 ref = render_reference(frame, args.ref_spp, fseed)
                 t_ref = time.time() - t1
-            for spp in spps:
+            for spp, stem in zip(spps, stems):
                 t1 = time.time()
                 layers = render_bundle(frame, spp, fseed, args.passes, not args.no_features,
                                        args.feature_spp or None)
                 if ref is not None:
                     layers["reference"] = ref
-                stem = args.name or (f"{name}" + ("" if pi is None else f"_p{pi:04d}") + f"_{spp}spp")
-                if args.name and (len(spps) > 1 or len(names) > 1 or len(perturbs) > 1):
-                    stem = f"{args.name}_{name}" + ("" if pi is None else f"_p{pi:04d}") + f"_{spp}spp"
                 attrs = {
                     "spp": float(spp),
                     "gdrecon_scene": name,
