@@ -19,7 +19,7 @@
 use rayon::prelude::*;
 
 use super::dct::DctPoisson;
-use super::ops::{apply_weighted, grad_adjoint, plane_sums, Dims, RowWeights};
+use super::ops::{apply_weighted_dot, plane_sums, Dims, RowWeights};
 use super::poisson_l2::check_alpha;
 use super::{Method, Reconstructor};
 use crate::error::{Error, Result};
@@ -70,7 +70,7 @@ impl PoissonL1Config {
     }
 
     pub(crate) fn validate(&self) -> Result<()> {
-        check_alpha(self.alpha, f32::MIN_POSITIVE)?;
+        check_alpha(self.alpha, true)?;
         if self.reweight_steps == 0 || self.reweight_steps > 1000 {
             return Err(Error::arg(format!(
                 "reweight_steps is {}, expected 1 to 1000",
@@ -107,6 +107,9 @@ pub struct PoissonL1 {
     wd: Vec<f32>,
     wx: Vec<f32>,
     wy: Vec<f32>,
+    /// Diagonal scaling of the preconditioner: `sqrt(diag(L) / diag(A))`, with `L` the
+    /// unweighted operator the DCT inverts and `A` the weighted one.
+    scale: Vec<f32>,
     partials: Vec<f64>,
 }
 
@@ -141,6 +144,7 @@ impl PoissonL1 {
             wd: vec![1.0; n],
             wx: vec![1.0; n],
             wy: vec![1.0; n],
+            scale: vec![1.0; n],
             partials: Vec::new(),
         })
     }
@@ -153,8 +157,10 @@ impl PoissonL1 {
         let alpha = self.cfg.alpha;
         let (x, ib) = (&self.x, frame.color().as_slice());
         let (gx, gy) = (frame.dx().as_slice(), frame.dy().as_slice());
-        let norm3 =
-            |f: &dyn Fn(usize) -> f32| -> f32 { (0..3).map(|c| f(c) * f(c)).sum::<f32>().sqrt() };
+        // Euclidean norm over R, G, B of one residual row.
+        let norm3 = |e: [f32; 3]| (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt();
+        let at = |v: &[f32], i: usize| [v[i], v[n + i], v[2 * n + i]];
+        let sub = |a: [f32; 3], b: [f32; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
         self.wd
             .par_chunks_mut(w)
             .zip(self.wx.par_chunks_mut(w))
@@ -164,22 +170,19 @@ impl PoissonL1 {
                 let mut sum = 0.0f64;
                 for xx in 0..w {
                     let i = yy * w + xx;
-                    let ed = alpha * norm3(&|c| x[c * n + i] - ib[c * n + i]);
-                    wd[xx] = 1.0 / (ed + reg);
-                    sum += f64::from(wd[xx]);
+                    let xi = at(x, i);
+                    wd[xx] = 1.0 / (alpha * norm3(sub(xi, at(ib, i))) + reg);
                     wx[xx] = if xx + 1 < w {
-                        let e = norm3(&|c| x[c * n + i + 1] - x[c * n + i] - gx[c * n + i]);
-                        1.0 / (e + reg)
+                        1.0 / (norm3(sub(sub(at(x, i + 1), xi), at(gx, i))) + reg)
                     } else {
                         0.0
                     };
                     wy[xx] = if yy + 1 < h {
-                        let e = norm3(&|c| x[c * n + i + w] - x[c * n + i] - gy[c * n + i]);
-                        1.0 / (e + reg)
+                        1.0 / (norm3(sub(sub(at(x, i + w), xi), at(gy, i))) + reg)
                     } else {
                         0.0
                     };
-                    sum += f64::from(wx[xx]) + f64::from(wy[xx]);
+                    sum += f64::from(wd[xx]) + f64::from(wx[xx]) + f64::from(wy[xx]);
                 }
                 sum
             })
@@ -192,29 +195,49 @@ impl PoissonL1 {
         }
     }
 
-    /// `b = alpha^2 W_d I_b + D_x^T W_x dx + D_y^T W_y dy`; uses `z` and `q` as scratch.
-    fn weighted_rhs(&mut self, frame: &Frame) {
-        let n = self.dims.len();
+    /// `b = alpha^2 W_d I_b + D_x^T W_x dx + D_y^T W_y dy`; returns `b . b` per channel.
+    fn weighted_rhs(&mut self, frame: &Frame) -> [f64; 3] {
+        let Dims { w, h } = self.dims;
         let alpha2 = self.cfg.alpha * self.cfg.alpha;
         let (ib, gx, gy) = (
             frame.color().as_slice(),
             frame.dx().as_slice(),
             frame.dy().as_slice(),
         );
-        for c in 0..3 {
-            let r = c * n..(c + 1) * n;
-            let (zx, qy) = (&mut self.z[r.clone()], &mut self.q[r.clone()]);
-            multiply(&gx[r.clone()], &self.wx, zx);
-            multiply(&gy[r.clone()], &self.wy, qy);
-            let b = &mut self.b[r.clone()];
-            grad_adjoint(zx, qy, self.dims, b);
-            b.par_iter_mut()
-                .zip(ib[r].par_iter().zip(self.wd.par_iter()))
-                .for_each(|(v, (&i, &wd))| *v += alpha2 * wd * i);
-        }
+        let (wd, wx, wy) = (&self.wd, &self.wx, &self.wy);
+        self.b
+            .par_chunks_mut(w)
+            .enumerate()
+            .map(|(r, row)| {
+                let (y, o) = (r % h, r * w);
+                let p = (r % h) * w; // offset in the (shared) weight planes
+                let mut bb = 0.0f32;
+                for (x, v) in row.iter_mut().enumerate() {
+                    let (i, k) = (o + x, p + x);
+                    let mut s = alpha2 * wd[k] * ib[i];
+                    if x >= 1 {
+                        s += wx[k - 1] * gx[i - 1];
+                    }
+                    if x + 1 < w {
+                        s -= wx[k] * gx[i];
+                    }
+                    if y >= 1 {
+                        s += wy[k - w] * gy[i - w];
+                    }
+                    if y + 1 < h {
+                        s -= wy[k] * gy[i];
+                    }
+                    *v = s;
+                    bb += s * s;
+                }
+                f64::from(bb)
+            })
+            .collect_into_vec(&mut self.partials);
+        per_channel(&self.partials)
     }
 
-    fn apply(&self, src: &[f32], dst: &mut [f32]) {
+    /// `dst = A src` per channel; returns `src . dst`.
+    fn apply(&mut self, src: &[f32], dst: &mut [f32]) -> [f64; 3] {
         let n = self.dims.len();
         let wt = RowWeights {
             data: &self.wd,
@@ -222,99 +245,169 @@ impl PoissonL1 {
             y: &self.wy,
         };
         let alpha2 = self.cfg.alpha * self.cfg.alpha;
-        for (s, d) in src.chunks(n).zip(dst.chunks_mut(n)) {
-            apply_weighted(s, alpha2, &wt, self.dims, d);
+        let mut out = [0.0; 3];
+        for (c, (s, d)) in src.chunks(n).zip(dst.chunks_mut(n)).enumerate() {
+            out[c] = apply_weighted_dot(s, alpha2, &wt, self.dims, d, &mut self.partials);
         }
+        out
     }
 
-    fn precondition(&mut self) {
-        self.z.copy_from_slice(&self.r);
-        if let Some(m) = self.precond.as_mut() {
-            m.solve(&mut self.z);
-        }
-    }
-
-    fn dots(&mut self, which: Dot) -> [f64; 3] {
-        let (a, b) = match which {
-            Dot::RR => (&self.r, &self.r),
-            Dot::RZ => (&self.r, &self.z),
-            Dot::PQ => (&self.p, &self.q),
-            Dot::BB => (&self.b, &self.b),
-        };
-        let s = plane_sums(
-            a,
-            b,
-            self.dims.w,
-            self.dims.len(),
-            &mut self.partials,
-            |x, y| f64::from(x) * f64::from(y),
-        );
-        [s[0], s[1], s[2]]
-    }
-
-    /// Preconditioned CG on the current weighted system, warm-started from `x`.
-    fn cg(&mut self, progress: &dyn Fn(f64) -> Result<()>) -> Result<CgOutcome> {
-        let n = self.dims.len();
-        let tol2 = f64::from(self.cfg.cg_tolerance).powi(2);
-        let bb = self.dots(Dot::BB).map(|v| v.max(f64::MIN_POSITIVE));
-        let x = std::mem::take(&mut self.x);
-        let mut q = std::mem::take(&mut self.q);
+    /// `r = b - A x`; returns `r . r` per channel.
+    fn residual(&mut self) -> [f64; 3] {
+        let (x, mut q) = (std::mem::take(&mut self.x), std::mem::take(&mut self.q));
         self.apply(&x, &mut q);
         (self.x, self.q) = (x, q);
+        let w = self.dims.w;
         self.r
-            .par_iter_mut()
-            .zip(self.b.par_iter().zip(self.q.par_iter()))
-            .for_each(|(r, (&b, &q))| *r = b - q);
+            .par_chunks_mut(w)
+            .zip(self.b.par_chunks(w).zip(self.q.par_chunks(w)))
+            .map(|(r, (b, q))| {
+                let mut rr = 0.0f32;
+                for ((r, &b), &q) in r.iter_mut().zip(b).zip(q) {
+                    *r = b - q;
+                    rr += *r * *r;
+                }
+                f64::from(rr)
+            })
+            .collect_into_vec(&mut self.partials);
+        per_channel(&self.partials)
+    }
+
+    /// `x += a p`, `r -= a q` (per-channel `a`); returns `r . r` per channel.
+    fn step(&mut self, a: [f32; 3]) -> [f64; 3] {
+        let Dims { w, h } = self.dims;
+        self.x
+            .par_chunks_mut(w)
+            .zip(self.r.par_chunks_mut(w))
+            .zip(self.p.par_chunks(w).zip(self.q.par_chunks(w)))
+            .enumerate()
+            .map(|(row, ((x, r), (p, q)))| {
+                let a = a[row / h];
+                let mut rr = 0.0f32;
+                for (((x, r), &p), &q) in x.iter_mut().zip(r.iter_mut()).zip(p).zip(q) {
+                    *x += a * p;
+                    *r -= a * q;
+                    rr += *r * *r;
+                }
+                f64::from(rr)
+            })
+            .collect_into_vec(&mut self.partials);
+        per_channel(&self.partials)
+    }
+
+    /// `z = S L^-1 S r`: the DCT inverse of the unweighted operator, made aware of the
+    /// weights by a symmetric diagonal scaling (so the preconditioner stays SPD; it halves
+    /// the CG iterations of the plain DCT preconditioner). Returns `r . z` per channel.
+    fn precondition(&mut self) -> [f64; 3] {
+        let n = self.dims.len();
+        let w = self.dims.w;
+        let Some(m) = self.precond.as_mut() else {
+            self.z.copy_from_slice(&self.r);
+            let r = std::mem::take(&mut self.r);
+            let rr = plane_sums(&r, &r, w, n, &mut self.partials, |a, b| {
+                f64::from(a) * f64::from(b)
+            });
+            self.r = r;
+            return [rr[0], rr[1], rr[2]];
+        };
+        let s = &self.scale;
+        self.z
+            .par_chunks_mut(n)
+            .zip(self.r.par_chunks(n))
+            .for_each(|(z, r)| {
+                z.par_iter_mut()
+                    .zip(r.par_iter().zip(s.par_iter()))
+                    .for_each(|(z, (&r, &s))| *z = r * s);
+            });
+        m.solve(&mut self.z);
+        let rows_per_plane = self.dims.h;
+        self.z
+            .par_chunks_mut(w)
+            .zip(self.r.par_chunks(w))
+            .enumerate()
+            .map(|(row, (z, r))| {
+                let o = (row % rows_per_plane) * w;
+                let mut rz = 0.0f32;
+                for ((z, &r), &s) in z.iter_mut().zip(r).zip(&s[o..o + w]) {
+                    *z *= s;
+                    rz += r * *z;
+                }
+                f64::from(rz)
+            })
+            .collect_into_vec(&mut self.partials);
+        per_channel(&self.partials)
+    }
+
+    /// Recomputes [`Self::scale`] from the current weights.
+    fn update_scale(&mut self) {
+        let Dims { w, h } = self.dims;
+        let alpha2 = self.cfg.alpha * self.cfg.alpha;
+        let (wd, wx, wy) = (&self.wd, &self.wx, &self.wy);
+        self.scale
+            .par_chunks_mut(w)
+            .enumerate()
+            .for_each(|(y, row)| {
+                for (x, s) in row.iter_mut().enumerate() {
+                    let i = y * w + x;
+                    let (mut dl, mut da) = (alpha2, alpha2 * wd[i]);
+                    if x >= 1 {
+                        dl += 1.0;
+                        da += wx[i - 1];
+                    }
+                    if x + 1 < w {
+                        dl += 1.0;
+                        da += wx[i];
+                    }
+                    if y >= 1 {
+                        dl += 1.0;
+                        da += wy[i - w];
+                    }
+                    if y + 1 < h {
+                        dl += 1.0;
+                        da += wy[i];
+                    }
+                    *s = if da > 0.0 { (dl / da).sqrt() } else { 1.0 };
+                }
+            });
+    }
+
+    /// Preconditioned CG on the current weighted system, warm-started from `x`, with
+    /// per-channel step sizes (three independent systems run in lockstep).
+    fn cg(&mut self, bb: [f64; 3], progress: &dyn Fn(f64) -> Result<()>) -> Result<CgOutcome> {
+        let n = self.dims.len();
+        let tol2 = f64::from(self.cfg.cg_tolerance).powi(2);
+        let bb = bb.map(|v| v.max(f64::MIN_POSITIVE));
         let rel = |rr: [f64; 3]| (0..3).map(|c| rr[c] / bb[c]).fold(0.0, f64::max);
-        let mut rr = self.dots(Dot::RR);
+        let mut rr = self.residual();
         if rel(rr) <= tol2 {
             return Ok(CgOutcome {
                 iterations: 0,
                 rel_residual: rel(rr).sqrt(),
             });
         }
-        self.precondition();
-        let mut rz = self.dots(Dot::RZ);
+        let mut rz = self.precondition();
         self.p.copy_from_slice(&self.z);
         let max = self.cfg.cg_iterations;
         let mut it = 0;
         while it < max {
-            let p = std::mem::take(&mut self.p);
-            let mut q = std::mem::take(&mut self.q);
-            self.apply(&p, &mut q);
+            let (p, mut q) = (std::mem::take(&mut self.p), std::mem::take(&mut self.q));
+            let pq = self.apply(&p, &mut q);
             (self.p, self.q) = (p, q);
-            let pq = self.dots(Dot::PQ);
-            let step: [f32; 3] = std::array::from_fn(|c| {
+            let a: [f32; 3] = std::array::from_fn(|c| {
                 let converged = rr[c] <= tol2 * bb[c];
-                if converged || !(pq[c] > 0.0) {
+                if converged || pq[c].is_nan() || pq[c] <= 0.0 {
                     0.0
                 } else {
                     (rz[c] / pq[c]) as f32
                 }
             });
-            for c in 0..3 {
-                let r = c * n..(c + 1) * n;
-                let a = step[c];
-                self.x[r.clone()]
-                    .par_iter_mut()
-                    .zip(self.r[r.clone()].par_iter_mut())
-                    .zip(self.p[r.clone()].par_iter().zip(self.q[r].par_iter()))
-                    .for_each(|((x, r), (&p, &q))| {
-                        *x += a * p;
-                        *r -= a * q;
-                    });
-            }
+            rr = self.step(a);
             it += 1;
-            rr = self.dots(Dot::RR);
             progress(f64::from(it) / f64::from(max))?;
-            if rel(rr) <= tol2 {
+            if rel(rr) <= tol2 || it == max {
                 break;
             }
-            if it == max {
-                break;
-            }
-            self.precondition();
-            let rz_new = self.dots(Dot::RZ);
+            let rz_new = self.precondition();
             let beta: [f32; 3] = std::array::from_fn(|c| {
                 if rz[c] > 0.0 {
                     (rz_new[c] / rz[c]) as f32
@@ -323,14 +416,15 @@ impl PoissonL1 {
                 }
             });
             rz = rz_new;
-            for c in 0..3 {
-                let r = c * n..(c + 1) * n;
-                let bc = beta[c];
-                self.p[r.clone()]
-                    .par_iter_mut()
-                    .zip(self.z[r].par_iter())
-                    .for_each(|(p, &z)| *p = z + bc * *p);
-            }
+            self.p
+                .par_chunks_mut(n)
+                .zip(self.z.par_chunks(n))
+                .zip(beta.par_iter())
+                .for_each(|((p, z), &beta)| {
+                    p.par_iter_mut()
+                        .zip(z.par_iter())
+                        .for_each(|(p, &z)| *p = z + beta * *p);
+                });
         }
         Ok(CgOutcome {
             iterations: it,
@@ -339,18 +433,10 @@ impl PoissonL1 {
     }
 }
 
-#[derive(Clone, Copy)]
-enum Dot {
-    RR,
-    RZ,
-    PQ,
-    BB,
-}
-
-fn multiply(a: &[f32], b: &[f32], out: &mut [f32]) {
-    out.par_iter_mut()
-        .zip(a.par_iter().zip(b.par_iter()))
-        .for_each(|(o, (&a, &b))| *o = a * b);
+/// Sums row partials (three planes of equal row count) per channel, in order.
+fn per_channel(partials: &[f64]) -> [f64; 3] {
+    let rows = partials.len() / 3;
+    std::array::from_fn(|c| partials[c * rows..(c + 1) * rows].iter().sum())
 }
 
 impl Reconstructor for PoissonL1 {
@@ -367,7 +453,7 @@ impl Reconstructor for PoissonL1 {
     ) -> Result<()> {
         let steps = self.cfg.reweight_steps;
         self.x.copy_from_slice(frame.color().as_slice());
-        for v in [&mut self.wd, &mut self.wx, &mut self.wy] {
+        for v in [&mut self.wd, &mut self.wx, &mut self.wy, &mut self.scale] {
             v.fill(1.0);
         }
         let (mut total_iters, mut last_rel) = (0u32, 0.0f64);
@@ -375,11 +461,14 @@ impl Reconstructor for PoissonL1 {
         for step in 0..steps {
             if step > 0 {
                 self.reweight(frame, step);
+                if self.precond.is_some() {
+                    self.update_scale();
+                }
             }
-            self.weighted_rhs(frame);
+            let bb = self.weighted_rhs(frame);
             let scoped =
                 progress.scoped(f64::from(step) / f64::from(steps), 1.0 / f64::from(steps));
-            let outcome = self.cg(&|f| scoped.update(f))?;
+            let outcome = self.cg(bb, &|f| scoped.update(f))?;
             total_iters += outcome.iterations;
             last_rel = outcome.rel_residual;
         }

@@ -31,23 +31,19 @@ impl Default for PoissonL2Config {
 
 impl PoissonL2Config {
     pub(crate) fn validate(&self) -> Result<()> {
-        check_alpha(self.alpha, 0.0)
+        check_alpha(self.alpha, false)
     }
 }
 
-pub(crate) fn check_alpha(alpha: f32, min_exclusive_or_zero: f32) -> Result<()> {
-    let ok = alpha.is_finite() && alpha <= 1e4 && alpha >= 0.0;
-    let ok = ok && (min_exclusive_or_zero == 0.0 || alpha > min_exclusive_or_zero);
-    if ok {
+/// Checks `alpha` is finite, at most 1e4, and at least 0 (or, with `positive`, above 0).
+pub(crate) fn check_alpha(alpha: f32, positive: bool) -> Result<()> {
+    let in_range = (0.0..=1e4).contains(&alpha) && !(positive && alpha == 0.0);
+    if in_range {
         Ok(())
     } else {
         Err(Error::arg(format!(
             "alpha is {alpha}, expected a finite value in {} 1e4]",
-            if min_exclusive_or_zero == 0.0 {
-                "[0,"
-            } else {
-                "(0,"
-            }
+            if positive { "(0," } else { "[0," }
         )))
     }
 }

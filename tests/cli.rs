@@ -1,0 +1,139 @@
+//! The `gdrecon` binary end to end: a synthetic bundle on disk, each subcommand, exit codes.
+
+use assert_cmd::Command;
+
+fn gdrecon() -> Command {
+    Command::cargo_bin("gdrecon").unwrap()
+}
+
+fn out(cmd: &mut Command) -> String {
+    let o = cmd.assert().success().get_output().stdout.clone();
+    String::from_utf8(o).unwrap()
+}
+
+#[test]
+fn demo_reconstruct_eval_info() {
+    let dir = tempfile::tempdir().unwrap();
+    let bundle = dir.path().join("demo.exr");
+    out(gdrecon()
+        .args([
+            "demo", "--width", "64", "--height", "40", "--spp", "8", "-o",
+        ])
+        .arg(&bundle));
+    let info = out(gdrecon().arg("info").arg(&bundle));
+    assert!(
+        info.contains("64 x 40") && info.contains("spp: 8") && info.contains("reference"),
+        "{info}"
+    );
+    for method in ["l2", "l1"] {
+        let result = dir.path().join(format!("{method}.exr"));
+        let png = dir.path().join(format!("{method}.png"));
+        let text = out(gdrecon()
+            .arg("reconstruct")
+            .arg(&bundle)
+            .args(["--method", method, "--threads", "2", "-o"])
+            .arg(&result)
+            .arg("--png")
+            .arg(&png));
+        assert!(
+            text.contains(&format!("method {method}")) && text.contains("relMSE"),
+            "{text}"
+        );
+        let reference = gdrecon::io::read_bundle(&bundle, gdrecon::Policy::Replace).unwrap();
+        let img = gdrecon::io::read_rgb(&result).unwrap();
+        assert_eq!(img.size(), (64, 40));
+        let m = gdrecon::metrics::compare(&img, reference.reference().unwrap()).unwrap();
+        let base =
+            gdrecon::metrics::compare(reference.color(), reference.reference().unwrap()).unwrap();
+        assert!(
+            m.rel_mse < base.rel_mse,
+            "{method}: {} vs base {}",
+            m.rel_mse,
+            base.rel_mse
+        );
+        assert!(png.exists());
+        let eval = out(gdrecon()
+            .arg("eval")
+            .arg(&result)
+            .arg("--reference")
+            .arg(&bundle));
+        assert!(
+            eval.contains(&format!("relMSE {:.5e}", m.rel_mse)),
+            "{eval} vs {}",
+            m.rel_mse
+        );
+    }
+    let quiet = out(gdrecon()
+        .arg("reconstruct")
+        .arg(&bundle)
+        .arg("-q")
+        .arg("-o")
+        .arg(dir.path().join("q.exr")));
+    assert!(quiet.is_empty(), "{quiet}");
+}
+
+#[test]
+fn errors_are_one_line_with_nonzero_exit() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("missing.exr");
+    let a = gdrecon()
+        .arg("reconstruct")
+        .arg(&missing)
+        .arg("-o")
+        .arg(dir.path().join("o.exr"))
+        .assert()
+        .code(1);
+    let err = String::from_utf8(a.get_output().stderr.clone()).unwrap();
+    assert!(
+        err.starts_with("gdrecon: error:")
+            && err.contains("missing.exr")
+            && err.lines().count() == 1,
+        "{err}"
+    );
+
+    let junk = dir.path().join("junk.exr");
+    std::fs::write(&junk, "hello").unwrap();
+    let a = gdrecon().arg("info").arg(&junk).assert().code(1);
+    let err = String::from_utf8(a.get_output().stderr.clone()).unwrap();
+    assert!(err.contains("junk.exr"), "{err}");
+
+    let bundle = dir.path().join("d.exr");
+    out(gdrecon()
+        .args(["demo", "--width", "8", "--height", "8", "-o"])
+        .arg(&bundle));
+    let a = gdrecon()
+        .arg("reconstruct")
+        .arg(&bundle)
+        .args(["-m", "nope", "-o"])
+        .arg(dir.path().join("o.exr"))
+        .assert()
+        .code(1);
+    let err = String::from_utf8(a.get_output().stderr.clone()).unwrap();
+    assert!(
+        err.contains("unknown method 'nope'") && err.contains("l2, l1"),
+        "{err}"
+    );
+    let a = gdrecon()
+        .arg("reconstruct")
+        .arg(&bundle)
+        .args(["--alpha=-1", "-o"])
+        .arg(dir.path().join("o.exr"))
+        .assert()
+        .code(1);
+    assert!(String::from_utf8(a.get_output().stderr.clone())
+        .unwrap()
+        .contains("alpha is -1"));
+    gdrecon().arg("reconstruct").assert().code(2);
+}
+
+#[test]
+fn bench_prints_a_table_and_csv() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("b.csv");
+    let text = out(gdrecon()
+        .args(["bench", "--synthetic", "48x32", "--runs", "3", "--csv"])
+        .arg(&csv));
+    assert!(text.contains("l2") && text.contains("l1"), "{text}");
+    let table = std::fs::read_to_string(&csv).unwrap();
+    assert_eq!(table.lines().count(), 3, "{table}");
+}

@@ -1,0 +1,280 @@
+//! Frame bundles on disk: round trips, the variants CONVENTIONS.md says readers accept, and a
+//! clear error for each kind of bad file.
+
+mod common;
+
+use common::*;
+use exr::prelude as x;
+use exr::prelude::{AttributeValue, FlatSamples, WritableImage};
+use gdrecon::{io, Error, Layer, Policy};
+use smallvec::SmallVec;
+
+fn tmp() -> tempfile::TempDir {
+    tempfile::tempdir().unwrap()
+}
+
+#[test]
+fn every_layer_round_trips_exactly() {
+    let frame = gdrecon::synth::synthetic_frame(23, 17, 4.0, 3);
+    let dir = tmp();
+    let path = dir.path().join("bundle.exr");
+    io::write_bundle(&path, &frame).unwrap();
+    let back = io::read_bundle(&path, Policy::Strict).unwrap();
+    assert_eq!(back.spp(), Some(4.0));
+    assert_eq!(back.present_layers(), Layer::ALL.to_vec());
+    for layer in Layer::ALL {
+        assert_eq!(back.layer(layer), frame.layer(layer), "{layer}");
+    }
+}
+
+#[test]
+fn output_rgb_round_trips() {
+    let img = test_image(9, 5);
+    let dir = tmp();
+    let path = dir.path().join("out.exr");
+    io::write_rgb(&path, &img).unwrap();
+    assert_eq!(io::read_rgb(&path).unwrap(), img);
+    // The output really is plain R, G, B channels.
+    let raw = x::read_all_flat_layers_from_file(&path).unwrap();
+    let names: Vec<String> = raw.layer_data[0]
+        .channel_data
+        .list
+        .iter()
+        .map(|c| c.name.to_string())
+        .collect();
+    assert_eq!(names, ["B", "G", "R"]);
+    assert_eq!(
+        raw.layer_data[0].encoding.compression,
+        x::Compression::ZIP16
+    );
+}
+
+/// Writes channels `(name, samples)` with the given encoding and attributes.
+fn write_custom(
+    path: &std::path::Path,
+    size: (usize, usize),
+    channels: Vec<(&str, FlatSamples)>,
+    encoding: x::Encoding,
+    spp: Option<AttributeValue>,
+) {
+    let list: SmallVec<[x::AnyChannel<FlatSamples>; 4]> = channels
+        .into_iter()
+        .map(|(n, s)| x::AnyChannel::new(n, s))
+        .collect();
+    let layer = x::Layer::new(
+        size,
+        x::LayerAttributes::default(),
+        encoding,
+        x::AnyChannels::sort(list),
+    );
+    let mut image = x::Image::from_layer(layer);
+    if let Some(v) = spp {
+        image.attributes.other.insert(x::Text::from("spp"), v);
+    }
+    image.write().to_file(path).unwrap();
+}
+
+fn plane(w: usize, h: usize, f: impl Fn(usize) -> f32) -> Vec<f32> {
+    (0..w * h).map(f).collect()
+}
+
+#[test]
+fn accepts_f16_tiles_piz_lowercase_components_aliases_and_ignores_unknown_layers() {
+    let (w, h) = (70, 40);
+    let dir = tmp();
+    let path = dir.path().join("variant.exr");
+    let f16 = |v: Vec<f32>| FlatSamples::F16(v.into_iter().map(half::f16::from_f32).collect());
+    let f32s = FlatSamples::F32;
+    let channels = vec![
+        ("color.r", f16(plane(w, h, |i| (i % 7) as f32 * 0.25))),
+        ("color.g", f16(plane(w, h, |_| 0.5))),
+        ("color.b", f16(plane(w, h, |_| 1.0))),
+        ("dx.R", f32s(plane(w, h, |_| 0.0))),
+        ("dx.G", f32s(plane(w, h, |_| 0.0))),
+        ("dx.B", f32s(plane(w, h, |_| 0.0))),
+        ("dy.R", f32s(plane(w, h, |_| 0.0))),
+        ("dy.G", f32s(plane(w, h, |_| 0.0))),
+        ("dy.B", f32s(plane(w, h, |_| 0.0))),
+        ("nn.X", f32s(plane(w, h, |_| 0.0))),
+        ("nn.Y", f32s(plane(w, h, |_| 1.0))),
+        ("nn.Z", f32s(plane(w, h, |_| 0.0))),
+        ("dd.T", f32s(plane(w, h, |i| i as f32))),
+        ("Albedo.R", f32s(plane(w, h, |_| 0.2))),
+        ("Albedo.G", f32s(plane(w, h, |_| 0.3))),
+        ("Albedo.B", f32s(plane(w, h, |_| 0.4))),
+        ("motion.X", f32s(plane(w, h, |_| 9.0))),
+        ("extra", f32s(plane(w, h, |_| 9.0))),
+    ];
+    let encoding = x::Encoding {
+        compression: x::Compression::PIZ,
+        blocks: x::Blocks::Tiles(x::Vec2(32, 32)),
+        line_order: x::LineOrder::Increasing,
+    };
+    write_custom(
+        &path,
+        (w, h),
+        channels,
+        encoding,
+        Some(AttributeValue::I32(64)),
+    );
+    let raw = io::read_bundle_raw(&path).unwrap();
+    assert_eq!(raw.spp, Some(64.0));
+    assert_eq!(raw.sources[&Layer::Normal], ["nn.X", "nn.Y", "nn.Z"]);
+    assert_eq!(raw.sources[&Layer::Depth], ["dd.T"]);
+    assert!(
+        raw.ignored.contains(&"motion.X".to_owned()) && raw.ignored.contains(&"extra".to_owned())
+    );
+    let frame = raw.into_frame(Policy::Strict).unwrap();
+    assert_eq!(frame.color().at(0, 3, 0), 0.75);
+    assert_eq!(frame.depth().unwrap().at(0, 5, 1), (w + 5) as f32);
+    assert_eq!(frame.albedo().unwrap().at(2, 0, 0), 0.4);
+    assert!(frame.variance().is_none() && frame.reference().is_none());
+}
+
+#[test]
+fn spp_attribute_that_is_not_positive_is_reported_as_unknown() {
+    let dir = tmp();
+    let path = dir.path().join("spp0.exr");
+    let zeros = || FlatSamples::F32(vec![0.0; 4]);
+    let ch = [
+        "color.R", "color.G", "color.B", "dx.R", "dx.G", "dx.B", "dy.R", "dy.G", "dy.B",
+    ];
+    write_custom(
+        &path,
+        (2, 2),
+        ch.iter().map(|n| (*n, zeros())).collect(),
+        x::Encoding::UNCOMPRESSED,
+        Some(AttributeValue::F32(0.0)),
+    );
+    let raw = io::read_bundle_raw(&path).unwrap();
+    assert_eq!(raw.spp, None);
+    assert!(raw.warnings[0].contains("spp = 0"), "{:?}", raw.warnings);
+}
+
+fn exr_message(e: Error) -> String {
+    match e {
+        Error::Exr { message, .. } => message,
+        other => panic!("expected an EXR error, got {other:?}"),
+    }
+}
+
+#[test]
+fn missing_file_is_an_io_error_naming_the_path() {
+    let e = io::read_bundle("/nonexistent/frame.exr", Policy::Replace).unwrap_err();
+    assert!(
+        matches!(e, Error::Io { .. }) && e.to_string().contains("/nonexistent/frame.exr"),
+        "{e}"
+    );
+}
+
+#[test]
+fn non_exr_data_is_named_as_such() {
+    let dir = tmp();
+    let path = dir.path().join("image.exr");
+    std::fs::write(&path, b"\x89PNG\r\n\x1a\n not an exr at all, just bytes").unwrap();
+    let e = io::read_bundle(&path, Policy::Replace).unwrap_err();
+    assert!(e.to_string().contains("image.exr"), "{e}");
+    assert!(exr_message(e).contains("not an OpenEXR file"));
+}
+
+#[test]
+fn truncated_file_is_an_error_not_a_panic() {
+    let frame = gdrecon::synth::synthetic_frame(16, 16, 4.0, 1);
+    let dir = tmp();
+    let path = dir.path().join("full.exr");
+    io::write_bundle(&path, &frame).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    for cut in [8, 100, bytes.len() / 2, bytes.len() - 10] {
+        assert!(
+            io::read_bundle_from_bytes(&bytes[..cut]).is_err(),
+            "cut at {cut}"
+        );
+    }
+}
+
+#[test]
+fn missing_required_layer_in_a_file_names_file_and_layer() {
+    let dir = tmp();
+    let path = dir.path().join("nody.exr");
+    let zeros = || FlatSamples::F32(vec![0.0; 6]);
+    let ch = ["color.R", "color.G", "color.B", "dx.R", "dx.G", "dx.B"];
+    write_custom(
+        &path,
+        (3, 2),
+        ch.iter().map(|n| (*n, zeros())).collect(),
+        x::Encoding::UNCOMPRESSED,
+        None,
+    );
+    let e = io::read_bundle(&path, Policy::Replace).unwrap_err();
+    let s = e.to_string();
+    assert!(
+        matches!(e, Error::InvalidInput(_))
+            && s.contains("nody.exr")
+            && s.contains("'dy'")
+            && s.contains("dy.R"),
+        "{s}"
+    );
+}
+
+#[test]
+fn incomplete_layer_names_the_missing_channels() {
+    let dir = tmp();
+    let path = dir.path().join("partial.exr");
+    let zeros = || FlatSamples::F32(vec![0.0; 6]);
+    let ch = [
+        "color.R", "color.G", "dx.R", "dx.G", "dx.B", "dy.R", "dy.G", "dy.B",
+    ];
+    write_custom(
+        &path,
+        (3, 2),
+        ch.iter().map(|n| (*n, zeros())).collect(),
+        x::Encoding::UNCOMPRESSED,
+        None,
+    );
+    let m = exr_message(io::read_bundle(&path, Policy::Replace).unwrap_err());
+    assert!(
+        m.contains("'color' needs channels color.R, color.G, color.B"),
+        "{m}"
+    );
+}
+
+#[test]
+fn parts_of_different_sizes_are_refused() {
+    let dir = tmp();
+    let path = dir.path().join("parts.exr");
+    let part = |name: &str, w: usize, h: usize| {
+        let list: SmallVec<[x::AnyChannel<FlatSamples>; 4]> = ["B", "G", "R"]
+            .iter()
+            .map(|c| x::AnyChannel::new(*c, FlatSamples::F32(vec![0.0; w * h])))
+            .collect();
+        x::Layer::new(
+            (w, h),
+            x::LayerAttributes::named(name),
+            x::Encoding::UNCOMPRESSED,
+            x::AnyChannels::sort(list),
+        )
+    };
+    let image = x::Image::from_layers(
+        x::ImageAttributes::new(x::IntegerBounds::from_dimensions((4, 4))),
+        smallvec::smallvec![part("color", 4, 4), part("dx", 4, 4), part("dy", 3, 4)],
+    );
+    image.write().to_file(&path).unwrap();
+    let m = exr_message(io::read_bundle(&path, Policy::Replace).unwrap_err());
+    assert!(m.contains("part 'dy' is 3 x 4"), "{m}");
+    // The same layout with equal sizes reads, layer names coming from the part names.
+    let image = x::Image::from_layers(
+        x::ImageAttributes::new(x::IntegerBounds::from_dimensions((4, 4))),
+        smallvec::smallvec![part("color", 4, 4), part("dx", 4, 4), part("dy", 4, 4)],
+    );
+    image.write().to_file(&path).unwrap();
+    assert!(io::read_bundle(&path, Policy::Strict).is_ok());
+}
+
+#[test]
+fn png_preview_is_written() {
+    let dir = tmp();
+    let path = dir.path().join("p.png");
+    io::write_png(&path, &test_image(8, 4), 0.0).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    assert_eq!(&bytes[1..4], b"PNG");
+}

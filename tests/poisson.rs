@@ -1,0 +1,319 @@
+//! Screened Poisson L2 and L1 against independent references and analytic cases.
+
+mod common;
+
+use common::*;
+use gdrecon::recon::{reconstruct, PoissonL1Config, PoissonL2Config};
+use gdrecon::{metrics, Context, ContextOptions, Image, MethodConfig, Plan, Progress};
+
+fn l2(frame: &gdrecon::Frame, alpha: f32) -> Image {
+    reconstruct(frame, &MethodConfig::PoissonL2(PoissonL2Config { alpha }))
+        .unwrap()
+        .0
+}
+
+fn l1(frame: &gdrecon::Frame, config: PoissonL1Config) -> Image {
+    reconstruct(frame, &MethodConfig::PoissonL1(config))
+        .unwrap()
+        .0
+}
+
+/// Tolerance: the DCT solve runs in f32; 1e-5 of the image's range is the bound.
+#[test]
+fn l2_matches_sparse_reference_solve() {
+    for (w, h, alpha, seed) in [
+        (16, 12, 0.2, 1),
+        (7, 23, 0.05, 2),
+        (31, 9, 1.0, 3),
+        (1, 10, 0.2, 4),
+        (10, 1, 0.3, 5),
+    ] {
+        let (frame, _) = noisy_frame(w, h, seed);
+        let ours = to_f64(&l2(&frame, alpha));
+        let reference = reference_l2(&frame, f64::from(alpha));
+        let d = rel_max_diff(&ours, &reference);
+        assert!(d < 1e-5, "{w}x{h} alpha {alpha}: relative difference {d:e}");
+    }
+}
+
+#[test]
+fn exact_gradients_and_base_reproduce_the_image() {
+    let img = test_image(40, 25);
+    let (dx, dy) = exact_gradients(&img);
+    let out = l2(&frame(img.clone(), dx, dy), 0.2);
+    let d = rel_max_diff(&to_f64(&out), &to_f64(&img));
+    assert!(d < 1e-5, "{d:e}");
+}
+
+#[test]
+fn exact_gradients_recover_the_image_from_any_zero_mean_noisy_base_at_alpha_zero() {
+    let (w, h) = (33, 17);
+    let img = test_image(w, h);
+    let (dx, dy) = exact_gradients(&img);
+    let mut rng = Lcg(9);
+    let noise: Vec<f32> = (0..3 * w * h).map(|_| 0.1 * rng.signed() as f32).collect();
+    let mut base = img.clone();
+    for c in 0..3 {
+        let plane = &noise[c * w * h..(c + 1) * w * h];
+        let mean = plane.iter().sum::<f32>() / plane.len() as f32;
+        for (v, n) in base.plane_mut(c).iter_mut().zip(plane) {
+            *v += n - mean;
+        }
+    }
+    let out = l2(&frame(base, dx, dy), 0.0);
+    let d = rel_max_diff(&to_f64(&out), &to_f64(&img));
+    assert!(d < 1e-5, "{d:e}");
+}
+
+#[test]
+fn constant_base_with_zero_gradients_stays_constant() {
+    let (w, h) = (20, 11);
+    let base = Image::from_fn(3, h, w, |(c, _, _)| 0.5 + c as f32);
+    let out = l2(
+        &frame(base.clone(), Image::zeros(3, h, w), Image::zeros(3, h, w)),
+        0.2,
+    );
+    for c in 0..3 {
+        for v in out.plane(c) {
+            assert!((v - (0.5 + c as f32)).abs() < 1e-5, "{v}");
+        }
+    }
+    let out = l1(
+        &frame(base, Image::zeros(3, h, w), Image::zeros(3, h, w)),
+        PoissonL1Config::default(),
+    );
+    for c in 0..3 {
+        for v in out.plane(c) {
+            assert!((v - (0.5 + c as f32)).abs() < 1e-4, "{v}");
+        }
+    }
+}
+
+#[test]
+fn large_alpha_returns_the_base() {
+    let (frame, _) = noisy_frame(24, 16, 7);
+    let out = l2(&frame, 1e3);
+    let d = rel_max_diff(&to_f64(&out), &to_f64(frame.color()));
+    assert!(d < 1e-5, "{d:e}");
+}
+
+#[test]
+fn zero_gradients_smooth_the_base() {
+    let (frame0, _) = noisy_frame(32, 32, 8);
+    let (w, h) = frame0.size();
+    let f = frame(
+        frame0.color().clone(),
+        Image::zeros(3, h, w),
+        Image::zeros(3, h, w),
+    );
+    let out = l2(&f, 0.2);
+    let tv = |img: &Image| -> f64 {
+        let (dx, _) = exact_gradients(img);
+        dx.as_slice().iter().map(|v| f64::from(v.abs())).sum()
+    };
+    assert!(
+        tv(&out) < 0.25 * tv(f.color()),
+        "{} vs {}",
+        tv(&out),
+        tv(f.color())
+    );
+    // The mean is preserved: the data term is the only one that sees it.
+    let mean = |img: &Image| img.as_slice().iter().map(|&v| f64::from(v)).sum::<f64>();
+    assert!((mean(&out) - mean(f.color())).abs() / mean(f.color()) < 1e-5);
+}
+
+/// The L1 solver converges to the same IRLS iterate as a naive f64 implementation of the
+/// published weight rule (tight tolerance, so this checks the algorithm, not the schedule).
+#[test]
+fn l1_matches_naive_irls_reference() {
+    let (frame, _) = noisy_frame(12, 10, 11);
+    let config = PoissonL1Config {
+        reweight_steps: 6,
+        cg_iterations: 500,
+        cg_tolerance: 1e-6,
+        ..PoissonL1Config::default()
+    };
+    let ours = to_f64(&l1(&frame, config));
+    let reference = reference_l1(&frame, 0.2, 6);
+    let d = rel_max_diff(&ours, &reference);
+    assert!(d < 2e-4, "relative difference {d:e}");
+}
+
+/// Inject gradient outliers: L1 must be closer to the clean image than L2, and its group-L1
+/// energy lower than L2's solution's.
+#[test]
+fn l1_is_more_robust_than_l2_to_gradient_outliers() {
+    let (w, h) = (48, 40);
+    let (frame0, clean) = noisy_frame(w, h, 21);
+    let mut dx = frame0.dx().clone();
+    let mut dy = frame0.dy().clone();
+    let mut rng = Lcg(5);
+    for _ in 0..40 {
+        let (x, y) = (
+            (rng.uniform() * (w - 1) as f64) as usize,
+            (rng.uniform() * (h - 1) as f64) as usize,
+        );
+        let v = 20.0 * rng.signed() as f32;
+        for c in 0..3 {
+            dx.plane_mut(c)[[y, x]] += v;
+            dy.plane_mut(c)[[y, x]] -= v;
+        }
+    }
+    let f = frame(frame0.color().clone(), dx, dy);
+    let out2 = l2(&f, 0.2);
+    let out1 = l1(&f, PoissonL1Config::default());
+    let e2 = metrics::compare(&out2, &clean).unwrap().rel_mse;
+    let e1 = metrics::compare(&out1, &clean).unwrap().rel_mse;
+    assert!(
+        e1 < 0.2 * e2,
+        "L1 relMSE {e1:e} should be far below L2's {e2:e}"
+    );
+    let en1 = l1_energy(&f, 0.2, &to_f64(&out1));
+    let en2 = l1_energy(&f, 0.2, &to_f64(&out2));
+    assert!(en1 < en2, "L1 energy {en1} vs L2 solution's {en2}");
+}
+
+#[test]
+fn published_preset_runs_its_fixed_schedule() {
+    let (frame, clean) = noisy_frame(20, 20, 3);
+    let (out, report) = reconstruct(
+        &frame,
+        &MethodConfig::PoissonL1(PoissonL1Config::published()),
+    )
+    .unwrap();
+    assert!(
+        report
+            .notes
+            .iter()
+            .any(|n| n.contains("1000 CG iterations") && n.contains("unpreconditioned")),
+        "{:?}",
+        report.notes
+    );
+    let fast = l1(&frame, PoissonL1Config::default());
+    let (ep, ef) = (
+        metrics::compare(&out, &clean).unwrap().rel_mse,
+        metrics::compare(&fast, &clean).unwrap().rel_mse,
+    );
+    assert!(
+        (ep - ef).abs() < 0.2 * ep,
+        "published {ep:e} vs fast {ef:e}"
+    );
+}
+
+#[test]
+fn results_are_bit_identical_for_any_thread_count() {
+    let frame = gdrecon::synth::synthetic_frame(97, 61, 8.0, 4);
+    for config in [
+        MethodConfig::PoissonL2(PoissonL2Config::default()),
+        MethodConfig::PoissonL1(PoissonL1Config::default()),
+    ] {
+        let run = |threads| {
+            let ctx = Context::new(ContextOptions {
+                threads: Some(threads),
+            })
+            .unwrap();
+            let mut plan = Plan::new(&ctx, &config, frame.width(), frame.height()).unwrap();
+            plan.execute(&frame, &Progress::none()).unwrap().0
+        };
+        let one = run(1);
+        for t in [2, 3, 5] {
+            assert!(
+                one.as_slice()
+                    .iter()
+                    .zip(run(t).as_slice())
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "{config:?} differs at {t} threads"
+            );
+        }
+    }
+}
+
+#[test]
+fn plans_are_reusable_and_check_sizes() {
+    let ctx = Context::new(ContextOptions::default()).unwrap();
+    let config = MethodConfig::PoissonL1(PoissonL1Config::default());
+    let mut plan = Plan::new(&ctx, &config, 20, 10).unwrap();
+    let (a, _) = noisy_frame(20, 10, 1);
+    let (b, _) = noisy_frame(20, 10, 2);
+    let first = plan.execute(&a, &Progress::none()).unwrap().0;
+    plan.execute(&b, &Progress::none()).unwrap();
+    assert_eq!(
+        plan.execute(&a, &Progress::none()).unwrap().0,
+        first,
+        "no state leaks between frames"
+    );
+    let (c, _) = noisy_frame(21, 10, 2);
+    let e = plan.execute(&c, &Progress::none()).unwrap_err();
+    assert!(
+        e.to_string().contains("21 x 10") && e.to_string().contains("20 x 10"),
+        "{e}"
+    );
+}
+
+#[test]
+fn progress_reaches_one_and_cancellation_stops() {
+    let (frame, _) = noisy_frame(30, 30, 1);
+    let ctx = Context::new(ContextOptions::default()).unwrap();
+    let config = MethodConfig::PoissonL1(PoissonL1Config::published());
+    let mut plan = Plan::new(&ctx, &config, 30, 30).unwrap();
+    let seen = std::sync::Mutex::new(Vec::new());
+    let record = |f: f64| {
+        seen.lock().unwrap().push(f);
+        true
+    };
+    plan.execute(&frame, &Progress::new(&record)).unwrap();
+    let seen = seen.into_inner().unwrap();
+    assert!(seen.windows(2).all(|p| p[0] <= p[1]), "monotone");
+    assert_eq!(*seen.last().unwrap(), 1.0);
+    let calls = std::sync::atomic::AtomicUsize::new(0);
+    let cancel = |_| calls.fetch_add(1, std::sync::atomic::Ordering::Relaxed) < 5;
+    let e = plan.execute(&frame, &Progress::new(&cancel)).unwrap_err();
+    assert!(matches!(e, gdrecon::Error::Cancelled), "{e}");
+    assert_eq!(
+        calls.load(std::sync::atomic::Ordering::Relaxed),
+        6,
+        "stops at the first false"
+    );
+}
+
+#[test]
+fn invalid_settings_are_rejected_with_the_value() {
+    let (frame, _) = noisy_frame(8, 8, 1);
+    for (config, needle) in [
+        (
+            MethodConfig::PoissonL2(PoissonL2Config { alpha: -1.0 }),
+            "alpha is -1",
+        ),
+        (
+            MethodConfig::PoissonL2(PoissonL2Config { alpha: f32::NAN }),
+            "alpha is NaN",
+        ),
+        (
+            MethodConfig::PoissonL1(PoissonL1Config {
+                alpha: 0.0,
+                ..Default::default()
+            }),
+            "alpha is 0",
+        ),
+        (
+            MethodConfig::PoissonL1(PoissonL1Config {
+                reweight_steps: 0,
+                ..Default::default()
+            }),
+            "reweight_steps is 0",
+        ),
+        (
+            MethodConfig::PoissonL1(PoissonL1Config {
+                cg_tolerance: 2.0,
+                ..Default::default()
+            }),
+            "cg_tolerance is 2",
+        ),
+    ] {
+        let e = reconstruct(&frame, &config).unwrap_err();
+        assert!(
+            matches!(e, gdrecon::Error::InvalidArgument(_)) && e.to_string().contains(needle),
+            "{e}"
+        );
+    }
+}
