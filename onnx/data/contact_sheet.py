@@ -57,7 +57,8 @@ def main(argv=None):
         except TypeError:  # old Pillow
             font = ImageFont.load_default()
         label = f"{name} (reference {int(float(spp))} spp)"
-        d.rectangle([0, 0, 8 + 9 * len(label), 22], fill=(0, 0, 0))
+        x0, y0, x1, y1 = d.textbbox((4, 2), label, font=font)
+        d.rectangle([0, 0, x1 + 4, y1 + 4], fill=(0, 0, 0))
         d.text((4, 2), label, fill=(255, 255, 255), font=font)
         tiles.append(tile)
     if not tiles:
