@@ -38,7 +38,9 @@ pub struct PoissonL1Config {
     /// Maximum CG iterations per step. Default 8.
     pub cg_iterations: u32,
     /// Stop CG when every channel's residual norm falls below this fraction of its
-    /// right-hand side's norm; 0 runs all `cg_iterations`. Default 1e-3.
+    /// right-hand side's norm; 0 runs all `cg_iterations`. Default 1e-2: on the validation
+    /// set (18 frames, 4-64 spp) it gave lower relMSE than 1e-3 (truncated IRLS regularises)
+    /// at 2.4x less time.
     pub cg_tolerance: f32,
     /// Precondition CG with the exact L2 (DCT) solve. Default true.
     pub preconditioned: bool,
@@ -50,7 +52,7 @@ impl Default for PoissonL1Config {
             alpha: 0.2,
             reweight_steps: 20,
             cg_iterations: 8,
-            cg_tolerance: 1e-3,
+            cg_tolerance: 1e-2,
             preconditioned: true,
         }
     }
