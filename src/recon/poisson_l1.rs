@@ -16,6 +16,8 @@
 //! [`PoissonL1Config::published`] reproduces the reference schedule (20 steps x 50 plain CG
 //! iterations) for comparison.
 
+use std::time::{Duration, Instant};
+
 use rayon::prelude::*;
 
 use super::dct::DctPoisson;
@@ -26,7 +28,7 @@ use crate::error::{Error, Result};
 use crate::frame::Frame;
 use crate::image::Image;
 use crate::progress::Progress;
-use crate::report::Report;
+use crate::report::{Report, Stage};
 
 /// Settings of the L1 (IRLS) screened Poisson solve.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -113,6 +115,8 @@ pub struct PoissonL1 {
     /// unweighted operator the DCT inverts and `A` the weighted one.
     scale: Vec<f32>,
     partials: Vec<f64>,
+    /// Time spent in the preconditioner during the current execution (for the report).
+    precond_time: Duration,
 }
 
 /// What one CG solve did.
@@ -148,7 +152,19 @@ impl PoissonL1 {
             wy: vec![1.0; n],
             scale: vec![1.0; n],
             partials: Vec::new(),
+            precond_time: Duration::ZERO,
         })
+    }
+
+    /// Unit weights (step 0), with the rows that do not exist (last column of `x`, last row
+    /// of `y`) at weight 0 so that every later pass can ignore the boundary.
+    fn reset_weights(&mut self) {
+        let Dims { w, h } = self.dims;
+        for v in [&mut self.wd, &mut self.wx, &mut self.wy, &mut self.scale] {
+            v.fill(1.0);
+        }
+        self.wx.chunks_mut(w).for_each(|row| row[w - 1] = 0.0);
+        self.wy[(h - 1) * w..].fill(0.0);
     }
 
     /// IRLS weights from the residuals of the current `x`, normalised to mean 1.
@@ -159,34 +175,49 @@ impl PoissonL1 {
         let alpha = self.cfg.alpha;
         let (x, ib) = (&self.x, frame.color().as_slice());
         let (gx, gy) = (frame.dx().as_slice(), frame.dy().as_slice());
-        // Euclidean norm over R, G, B of one residual row.
-        let norm3 = |e: [f32; 3]| (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt();
-        let at = |v: &[f32], i: usize| [v[i], v[n + i], v[2 * n + i]];
-        let sub = |a: [f32; 3], b: [f32; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+        // Row `y` of each channel of a planar buffer.
+        let rows3 = |y: usize| -> [std::ops::Range<usize>; 3] {
+            std::array::from_fn(|c| c * n + y * w..c * n + (y + 1) * w)
+        };
         self.wd
             .par_chunks_mut(w)
             .zip(self.wx.par_chunks_mut(w))
             .zip(self.wy.par_chunks_mut(w))
             .enumerate()
-            .map(|(yy, ((wd, wx), wy))| {
-                let mut sum = 0.0f64;
-                for xx in 0..w {
-                    let i = yy * w + xx;
-                    let xi = at(x, i);
-                    wd[xx] = 1.0 / (alpha * norm3(sub(xi, at(ib, i))) + reg);
-                    wx[xx] = if xx + 1 < w {
-                        1.0 / (norm3(sub(sub(at(x, i + 1), xi), at(gx, i))) + reg)
-                    } else {
-                        0.0
-                    };
-                    wy[xx] = if yy + 1 < h {
-                        1.0 / (norm3(sub(sub(at(x, i + w), xi), at(gy, i))) + reg)
-                    } else {
-                        0.0
-                    };
-                    sum += f64::from(wd[xx]) + f64::from(wx[xx]) + f64::from(wy[xx]);
+            .map(|(y, ((wd, wx), wy))| {
+                let r = rows3(y);
+                let (x0, x1, x2) = (&x[r[0].clone()], &x[r[1].clone()], &x[r[2].clone()]);
+                let (b0, b1, b2) = (&ib[r[0].clone()], &ib[r[1].clone()], &ib[r[2].clone()]);
+                // Data rows: ||alpha (x - I_b)||.
+                for i in 0..w {
+                    let (e0, e1, e2) = (x0[i] - b0[i], x1[i] - b1[i], x2[i] - b2[i]);
+                    wd[i] = 1.0 / (alpha * (e0 * e0 + e1 * e1 + e2 * e2).sqrt() + reg);
                 }
-                sum
+                // Horizontal rows: ||x(p + 1) - x(p) - dx(p)||, p in the first w - 1 columns.
+                let (g0, g1, g2) = (&gx[r[0].clone()], &gx[r[1].clone()], &gx[r[2].clone()]);
+                for i in 0..w - 1 {
+                    let e0 = x0[i + 1] - x0[i] - g0[i];
+                    let e1 = x1[i + 1] - x1[i] - g1[i];
+                    let e2 = x2[i + 1] - x2[i] - g2[i];
+                    wx[i] = 1.0 / ((e0 * e0 + e1 * e1 + e2 * e2).sqrt() + reg);
+                }
+                wx[w - 1] = 0.0;
+                // Vertical rows: ||x(p + w) - x(p) - dy(p)||, p in the first h - 1 rows.
+                if y + 1 < h {
+                    let d = rows3(y + 1);
+                    let (n0, n1, n2) = (&x[d[0].clone()], &x[d[1].clone()], &x[d[2].clone()]);
+                    let (g0, g1, g2) = (&gy[r[0].clone()], &gy[r[1].clone()], &gy[r[2].clone()]);
+                    for i in 0..w {
+                        let e0 = n0[i] - x0[i] - g0[i];
+                        let e1 = n1[i] - x1[i] - g1[i];
+                        let e2 = n2[i] - x2[i] - g2[i];
+                        wy[i] = 1.0 / ((e0 * e0 + e1 * e1 + e2 * e2).sqrt() + reg);
+                    }
+                } else {
+                    wy.fill(0.0);
+                }
+                let sum = |v: &[f32]| v.iter().map(|&a| f64::from(a)).sum::<f64>();
+                sum(wd) + sum(wx) + sum(wy)
             })
             .collect_into_vec(&mut self.partials);
         let rows = n + h * (w - 1) + (h - 1) * w;
@@ -198,6 +229,7 @@ impl PoissonL1 {
     }
 
     /// `b = alpha^2 W_d I_b + D_x^T W_x dx + D_y^T W_y dy`; returns `b . b` per channel.
+    /// Relies on the zero weights of the rows that do not exist (see `reset_weights`).
     fn weighted_rhs(&mut self, frame: &Frame) -> [f64; 3] {
         let Dims { w, h } = self.dims;
         let alpha2 = self.cfg.alpha * self.cfg.alpha;
@@ -212,27 +244,22 @@ impl PoissonL1 {
             .enumerate()
             .map(|(r, row)| {
                 let (y, o) = (r % h, r * w);
-                let p = (r % h) * w; // offset in the (shared) weight planes
-                let mut bb = 0.0f32;
-                for (x, v) in row.iter_mut().enumerate() {
-                    let (i, k) = (o + x, p + x);
-                    let mut s = alpha2 * wd[k] * ib[i];
-                    if x >= 1 {
-                        s += wx[k - 1] * gx[i - 1];
-                    }
-                    if x + 1 < w {
-                        s -= wx[k] * gx[i];
-                    }
-                    if y >= 1 {
-                        s += wy[k - w] * gy[i - w];
-                    }
-                    if y + 1 < h {
-                        s -= wy[k] * gy[i];
-                    }
-                    *v = s;
-                    bb += s * s;
+                let k = y * w; // offset in the (shared) weight planes
+                let (wdr, wxr, wyr) = (&wd[k..k + w], &wx[k..k + w], &wy[k..k + w]);
+                let (ibr, gxr, gyr) = (&ib[o..o + w], &gx[o..o + w], &gy[o..o + w]);
+                for i in 0..w {
+                    row[i] = alpha2 * wdr[i] * ibr[i] - wxr[i] * gxr[i] - wyr[i] * gyr[i];
                 }
-                f64::from(bb)
+                for i in 1..w {
+                    row[i] += wxr[i - 1] * gxr[i - 1];
+                }
+                if y >= 1 {
+                    let (wyu, gyu) = (&wy[k - w..k], &gy[o - w..o]);
+                    for i in 0..w {
+                        row[i] += wyu[i] * gyu[i];
+                    }
+                }
+                f64::from(row.iter().map(|v| v * v).sum::<f32>())
             })
             .collect_into_vec(&mut self.partials);
         per_channel(&self.partials)
@@ -312,6 +339,7 @@ impl PoissonL1 {
             self.r = r;
             return [rr[0], rr[1], rr[2]];
         };
+        let t0 = Instant::now();
         let s = &self.scale;
         self.z
             .par_chunks_mut(n)
@@ -337,10 +365,11 @@ impl PoissonL1 {
                 f64::from(rz)
             })
             .collect_into_vec(&mut self.partials);
+        self.precond_time += t0.elapsed();
         per_channel(&self.partials)
     }
 
-    /// Recomputes [`Self::scale`] from the current weights.
+    /// Recomputes [`Self::scale`] from the current weights (zero at missing rows).
     fn update_scale(&mut self) {
         let Dims { w, h } = self.dims;
         let alpha2 = self.cfg.alpha * self.cfg.alpha;
@@ -349,26 +378,18 @@ impl PoissonL1 {
             .par_chunks_mut(w)
             .enumerate()
             .for_each(|(y, row)| {
-                for (x, s) in row.iter_mut().enumerate() {
-                    let i = y * w + x;
-                    let (mut dl, mut da) = (alpha2, alpha2 * wd[i]);
-                    if x >= 1 {
-                        dl += 1.0;
-                        da += wx[i - 1];
-                    }
-                    if x + 1 < w {
-                        dl += 1.0;
-                        da += wx[i];
-                    }
-                    if y >= 1 {
-                        dl += 1.0;
-                        da += wy[i - w];
-                    }
-                    if y + 1 < h {
-                        dl += 1.0;
-                        da += wy[i];
-                    }
-                    *s = if da > 0.0 { (dl / da).sqrt() } else { 1.0 };
+                let k = y * w;
+                let (wdr, wxr, wyr) = (&wd[k..k + w], &wx[k..k + w], &wy[k..k + w]);
+                // diag(L): alpha^2 plus the number of neighbours; diag(A): alpha^2 wd plus the
+                // weights of the edges at the pixel.
+                let vertical = f32::from(u8::from(y >= 1) + u8::from(y + 1 < h));
+                for i in 0..w {
+                    let horizontal = f32::from(u8::from(i >= 1) + u8::from(i + 1 < w));
+                    let left = if i >= 1 { wxr[i - 1] } else { 0.0 };
+                    let up = if y >= 1 { wy[k + i - w] } else { 0.0 };
+                    let da = alpha2 * wdr[i] + left + wxr[i] + up + wyr[i];
+                    let dl = alpha2 + horizontal + vertical;
+                    row[i] = if da > 0.0 { (dl / da).sqrt() } else { 1.0 };
                 }
             });
     }
@@ -455,12 +476,12 @@ impl Reconstructor for PoissonL1 {
     ) -> Result<()> {
         let steps = self.cfg.reweight_steps;
         self.x.copy_from_slice(frame.color().as_slice());
-        for v in [&mut self.wd, &mut self.wx, &mut self.wy, &mut self.scale] {
-            v.fill(1.0);
-        }
+        self.reset_weights();
         let (mut total_iters, mut last_rel) = (0u32, 0.0f64);
-        let start = std::time::Instant::now();
+        let (mut reweight_time, mut cg_time) = (Duration::ZERO, Duration::ZERO);
+        self.precond_time = Duration::ZERO;
         for step in 0..steps {
+            let t0 = Instant::now();
             if step > 0 {
                 self.reweight(frame, step);
                 if self.precond.is_some() {
@@ -468,16 +489,25 @@ impl Reconstructor for PoissonL1 {
                 }
             }
             let bb = self.weighted_rhs(frame);
+            let t1 = Instant::now();
+            reweight_time += t1 - t0;
             let scoped =
                 progress.scoped(f64::from(step) / f64::from(steps), 1.0 / f64::from(steps));
             let outcome = self.cg(bb, &|f| scoped.update(f))?;
+            cg_time += t1.elapsed();
             total_iters += outcome.iterations;
             last_rel = outcome.rel_residual;
         }
-        report.stages.push(crate::report::Stage {
-            name: "irls".into(),
-            time: start.elapsed(),
-        });
+        for (name, time) in [
+            ("reweight", reweight_time),
+            ("cg", cg_time.saturating_sub(self.precond_time)),
+            ("precondition", self.precond_time),
+        ] {
+            report.stages.push(Stage {
+                name: name.into(),
+                time,
+            });
+        }
         report.note(format!(
             "IRLS: {steps} steps, {total_iters} CG iterations ({}), last relative residual {last_rel:.2e}",
             if self.precond.is_some() {
