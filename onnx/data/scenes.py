@@ -318,8 +318,8 @@ def sunsky(W, H, rng=None):
     """Sun and sky: a delta directional sun (hard shadows) plus a Hosek-Wilkie sky (sun part off)
     over a ground plane with blocks, a sphere and a cylinder."""
     s = base_dict()
-    s["sensor"] = sensor(orbit(rng, [0, 2.2, 7.0], [0, 0.6, 0], yaw=25), [0, 0.6, 0], u(rng, 50.0, 42, 58))
-    s["ground"] = rect([0, 0, 0], [0, 1, 0], 40, 40, diffuse(colour(rng, [0.45, 0.42, 0.36], sat=(0, 0.4), val=(0.3, 0.6))))
+    s["sensor"] = sensor(orbit(rng, [0, 1.9, 7.0], [0, 0.9, 0], yaw=25), [0, 0.9, 0], u(rng, 50.0, 42, 58))
+    s["ground"] = rect([0, 0, 0], [0, 1, 0], 500, 500, diffuse(colour(rng, [0.45, 0.42, 0.36], sat=(0, 0.4), val=(0.3, 0.6))))
     cols = [colour(rng, c) for c in ([0.7, 0.2, 0.15], [0.2, 0.5, 0.7], [0.85, 0.8, 0.7], [0.3, 0.6, 0.2])]
     s["tower"] = box([u(rng, -1.6, -2.2, -1.0), 1.0, u(rng, -0.5, -1.5, 0.5)], [0.35, 1.0, 0.35],
                      diffuse(cols[0]), yaw=u(rng, 20, -45, 45))
@@ -335,7 +335,9 @@ def sunsky(W, H, rng=None):
     irr = u(rng, 3.5, 2.0, 5.0)
     s["sun"] = {"type": "directional", "direction": [float(-c) for c in to_sun],
                 "irradiance": rgb(tint(rng, [irr, irr * 0.92, irr * 0.8], 0.15))}
-    s["sky"] = {"type": "sunsky", "sun_direction": [float(c) for c in to_sun], "sun_scale": 0.0,
+    # Mitsuba's sky model is z-up: rotate it to y-up (sun_direction stays in world space)
+    s["sky"] = {"type": "sunsky", "to_world": T().rotate([1, 0, 0], -90),
+                "sun_direction": [float(c) for c in to_sun], "sun_scale": 0.0,
                 "sky_scale": u(rng, 1.0, 0.6, 1.5), "turbidity": u(rng, 3.0, 2.0, 6.0)}
     return s
 
