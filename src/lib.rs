@@ -23,6 +23,8 @@
 #![deny(unsafe_code)]
 #![warn(missing_docs)]
 
+#[allow(unsafe_code)]
+pub mod capi;
 pub mod context;
 pub mod error;
 pub mod frame;

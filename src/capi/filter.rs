@@ -1,0 +1,679 @@
+//! `gdr_filter`: one reconstruction method with its parameters, image views and plan.
+
+use std::collections::BTreeMap;
+use std::ffi::{c_char, c_void, CString};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
+
+use super::context::{context_arc, gdr_context};
+use super::gdr_error::*;
+use super::gdr_log_level::*;
+use super::view::{Layout, View};
+use super::{c_str, err, gdr_error, gdr_progress_fn, guard, out_ptr, CResult, CapiError, UserPtr};
+use crate::context::Context;
+use crate::frame::{FrameBuilder, Layer};
+use crate::image::Image;
+use crate::progress::Progress;
+use crate::recon::{Method, MethodConfig, Plan};
+use crate::validate::Policy;
+
+/// A reconstruction filter: one method, its parameters, image views and plan (opaque).
+pub struct gdr_filter {
+    context: Arc<gdr_context>,
+    pool: Context,
+    cancel: AtomicBool,
+    state: Mutex<State>,
+}
+
+struct State {
+    config: MethodConfig,
+    strict: bool,
+    spp: f32,
+    inputs: BTreeMap<Layer, View>,
+    output: Option<View>,
+    progress: Option<(unsafe extern "C" fn(*mut c_void, f64) -> bool, UserPtr)>,
+    /// Changed since the last successful commit.
+    dirty: bool,
+    plan: Option<Plan>,
+    planned: Option<(MethodConfig, usize, usize)>,
+    out: Image,
+    report: CString,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Kind {
+    Float,
+    Int,
+    Bool,
+}
+
+#[derive(Clone, Copy, Debug)]
+enum Value {
+    Float(f32),
+    Int(i32),
+    Bool(bool),
+}
+
+impl Kind {
+    fn name(self) -> &'static str {
+        match self {
+            Kind::Float => "float",
+            Kind::Int => "int",
+            Kind::Bool => "bool",
+        }
+    }
+}
+
+impl Value {
+    fn kind(self) -> Kind {
+        match self {
+            Value::Float(_) => Kind::Float,
+            Value::Int(_) => Kind::Int,
+            Value::Bool(_) => Kind::Bool,
+        }
+    }
+}
+
+/// Deliberately panics when set to true: lets tests check that no panic crosses the ABI.
+const TEST_PANIC: &str = "internal_test_panic";
+
+/// The parameters of a method, with their types.
+fn params(method: Method) -> &'static [(&'static str, Kind)] {
+    use Kind::*;
+    match method {
+        Method::PoissonL2 => &[("alpha", Float), ("spp", Float), ("strict", Bool)],
+        Method::PoissonL1 => &[
+            ("alpha", Float),
+            ("reweight_steps", Int),
+            ("cg_iterations", Int),
+            ("cg_tolerance", Float),
+            ("preconditioned", Bool),
+            ("spp", Float),
+            ("strict", Bool),
+        ],
+        #[allow(unreachable_patterns)]
+        _ => &[("spp", Float), ("strict", Bool)],
+    }
+}
+
+/// Checks that `name` is a parameter of the filter's method with type `kind`.
+fn check_param(config: &MethodConfig, name: &str, kind: Kind) -> CResult {
+    let method = config.method();
+    let list = params(method);
+    match list.iter().find(|(n, _)| *n == name) {
+        Some((_, k)) if *k == kind => Ok(()),
+        Some((_, k)) => err(
+            GDR_ERROR_INVALID_ARGUMENT,
+            format!(
+                "parameter '{name}' of method '{method}' is a {0}: use gdr_filter_set_{0} / gdr_filter_get_{0}",
+                k.name()
+            ),
+        ),
+        None if name == TEST_PANIC && kind == Kind::Bool => Ok(()),
+        None => err(
+            GDR_ERROR_INVALID_ARGUMENT,
+            format!(
+                "unknown parameter '{name}' for method '{method}', expected one of: {}",
+                list.iter()
+                    .map(|(n, k)| format!("{n} ({})", k.name()))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        ),
+    }
+}
+
+fn to_u32(name: &str, v: i32) -> CResult<u32> {
+    u32::try_from(v).map_err(|_| {
+        CapiError::new(
+            GDR_ERROR_INVALID_ARGUMENT,
+            format!("{name} is {v}, expected a non-negative value"),
+        )
+    })
+}
+
+impl State {
+    fn set(&mut self, name: &str, value: Value) -> CResult {
+        check_param(&self.config, name, value.kind())?;
+        use MethodConfig as M;
+        use Value as V;
+        match (name, &mut self.config, value) {
+            (TEST_PANIC, _, V::Bool(true)) => panic!("deliberate panic ({TEST_PANIC})"),
+            (TEST_PANIC, _, _) => {}
+            ("spp", _, V::Float(s)) => {
+                if !(s.is_finite() && s >= 0.0) {
+                    return err(
+                        GDR_ERROR_INVALID_ARGUMENT,
+                        format!("spp is {s}, expected a positive number (or 0: unknown)"),
+                    );
+                }
+                self.spp = s;
+            }
+            ("strict", _, V::Bool(b)) => self.strict = b,
+            ("alpha", M::PoissonL2(c), V::Float(a)) => c.alpha = a,
+            ("alpha", M::PoissonL1(c), V::Float(a)) => c.alpha = a,
+            ("reweight_steps", M::PoissonL1(c), V::Int(i)) => c.reweight_steps = to_u32(name, i)?,
+            ("cg_iterations", M::PoissonL1(c), V::Int(i)) => c.cg_iterations = to_u32(name, i)?,
+            ("cg_tolerance", M::PoissonL1(c), V::Float(t)) => c.cg_tolerance = t,
+            ("preconditioned", M::PoissonL1(c), V::Bool(b)) => c.preconditioned = b,
+            _ => {
+                return err(
+                    GDR_ERROR_UNKNOWN,
+                    format!("parameter '{name}' has no setter"),
+                )
+            }
+        }
+        self.dirty = true;
+        Ok(())
+    }
+
+    fn get(&self, name: &str, kind: Kind) -> CResult<Value> {
+        check_param(&self.config, name, kind)?;
+        use MethodConfig as M;
+        Ok(match (name, &self.config) {
+            (TEST_PANIC, _) => Value::Bool(false),
+            ("spp", _) => Value::Float(self.spp),
+            ("strict", _) => Value::Bool(self.strict),
+            ("alpha", M::PoissonL2(c)) => Value::Float(c.alpha),
+            ("alpha", M::PoissonL1(c)) => Value::Float(c.alpha),
+            ("reweight_steps", M::PoissonL1(c)) => {
+                Value::Int(i32::try_from(c.reweight_steps).unwrap_or(i32::MAX))
+            }
+            ("cg_iterations", M::PoissonL1(c)) => {
+                Value::Int(i32::try_from(c.cg_iterations).unwrap_or(i32::MAX))
+            }
+            ("cg_tolerance", M::PoissonL1(c)) => Value::Float(c.cg_tolerance),
+            ("preconditioned", M::PoissonL1(c)) => Value::Bool(c.preconditioned),
+            _ => {
+                return err(
+                    GDR_ERROR_UNKNOWN,
+                    format!("parameter '{name}' has no getter"),
+                )
+            }
+        })
+    }
+
+    /// Validates the views and (re)plans when the method settings or the size changed.
+    fn commit(&mut self, pool: &Context) -> CResult<String> {
+        for layer in [Layer::Color, Layer::Dx, Layer::Dy] {
+            if !self.inputs.contains_key(&layer) {
+                return err(
+                    GDR_ERROR_INVALID_OPERATION,
+                    format!("image '{layer}' is not set: color, dx, dy and output are required before commit"),
+                );
+            }
+        }
+        let Some(output) = self.output else {
+            return err(
+                GDR_ERROR_INVALID_OPERATION,
+                "image 'output' is not set: color, dx, dy and output are required before commit",
+            );
+        };
+        let color = self.inputs[&Layer::Color];
+        let (w, h) = (color.width, color.height);
+        let all = self.inputs.iter().map(|(l, v)| (l.name(), v));
+        for (name, v) in all.chain([("output", &output)]) {
+            if (v.width, v.height) != (w, h) {
+                return err(
+                    GDR_ERROR_INVALID_IMAGE,
+                    format!(
+                        "image '{name}' is {} x {}, expected {w} x {h} like 'color'",
+                        v.width, v.height
+                    ),
+                );
+            }
+        }
+        for (layer, v) in &self.inputs {
+            if output.partially_overlaps(v) {
+                return err(
+                    GDR_ERROR_OVERLAP,
+                    format!(
+                        "image 'output' shares memory with image '{layer}' without being the same view: \
+                         write in place with exactly that image's pointer and strides, or use separate memory"
+                    ),
+                );
+            }
+        }
+        if w.checked_mul(h)
+            .and_then(|n| n.checked_mul(12))
+            .is_none_or(|b| b > isize::MAX as usize)
+        {
+            return err(
+                GDR_ERROR_OUT_OF_MEMORY,
+                format!("{w} x {h} x 3 floats cannot be allocated"),
+            );
+        }
+        let mut note = String::new();
+        if self.planned != Some((self.config, w, h)) {
+            self.plan = None;
+            self.planned = None;
+            self.out = Image::zeros(3, 0, 0);
+            self.plan = Some(Plan::new(pool, &self.config, w, h)?);
+            self.out = Image::zeros(3, h, w);
+            self.planned = Some((self.config, w, h));
+            note = format!("planned method {} for {w} x {h}", self.config.method());
+        }
+        self.dirty = false;
+        Ok(note)
+    }
+}
+
+/// Borrows a filter handle and locks it for one call; failures are logged on its context.
+unsafe fn with_filter(
+    function: &'static str,
+    filter: *const gdr_filter,
+    body: impl FnOnce(&gdr_filter, &mut State) -> CResult,
+) -> gdr_error {
+    guard(function, || {
+        let Some(f) = filter.as_ref() else {
+            return err(GDR_ERROR_NULL_POINTER, "filter is NULL");
+        };
+        let mut state = lock(f)?;
+        let result = body(f, &mut state);
+        drop(state);
+        if let Err(e) = &result {
+            f.context
+                .log(GDR_LOG_ERROR, &format!("{function}: {}", e.message));
+        }
+        result
+    })
+}
+
+fn lock(f: &gdr_filter) -> CResult<MutexGuard<'_, State>> {
+    match f.state.try_lock() {
+        Ok(g) => Ok(g),
+        Err(TryLockError::WouldBlock) => err(
+            GDR_ERROR_INVALID_OPERATION,
+            "the filter is busy: another call on it is running (on another thread, or this is its own progress callback)",
+        ),
+        Err(TryLockError::Poisoned(p)) => {
+            // A previous call panicked half-way: keep the settings, drop the plan.
+            f.state.clear_poison();
+            let mut g = p.into_inner();
+            g.plan = None;
+            g.planned = None;
+            g.dirty = true;
+            Ok(g)
+        }
+    }
+}
+
+/// Create a filter running `method` (`"l2"`, `"l1"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_new(
+    ctx: *mut gdr_context,
+    method: *const c_char,
+    out: *mut *mut gdr_filter,
+) -> gdr_error {
+    guard("gdr_filter_new", || {
+        let out = out_ptr(out, "out")?;
+        *out = std::ptr::null_mut();
+        let context = context_arc(ctx)?;
+        let method: Method = c_str(method, "method")?.parse()?;
+        let pool = context.pool()?;
+        let filter = gdr_filter {
+            context,
+            pool,
+            cancel: AtomicBool::new(false),
+            state: Mutex::new(State {
+                config: MethodConfig::default_for(method),
+                strict: false,
+                spp: 0.0,
+                inputs: BTreeMap::new(),
+                output: None,
+                progress: None,
+                dirty: true,
+                plan: None,
+                planned: None,
+                out: Image::zeros(3, 0, 0),
+                report: CString::default(),
+            }),
+        };
+        *out = Arc::into_raw(Arc::new(filter)).cast_mut();
+        Ok(())
+    })
+}
+
+/// Add a reference to `filter`; each reference is dropped by one `gdr_filter_release`.
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_retain(filter: *mut gdr_filter) -> gdr_error {
+    guard("gdr_filter_retain", || {
+        if filter.is_null() {
+            return err(GDR_ERROR_NULL_POINTER, "filter is NULL");
+        }
+        Arc::increment_strong_count(filter.cast_const());
+        Ok(())
+    })
+}
+
+/// Drop the reference `*filter` and set `*filter` to NULL (no-op when `*filter` is NULL); the last one frees the filter.
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_release(filter: *mut *mut gdr_filter) -> gdr_error {
+    guard("gdr_filter_release", || {
+        let slot = out_ptr(filter, "filter")?;
+        let raw = std::mem::replace(slot, std::ptr::null_mut());
+        if !raw.is_null() {
+            drop(Arc::from_raw(raw.cast_const()));
+        }
+        Ok(())
+    })
+}
+
+/// Set a float parameter: `"alpha"` (screened Poisson weight), `"spp"` (0 = unknown); l1 also `"cg_tolerance"`.
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_set_float(
+    filter: *mut gdr_filter,
+    name: *const c_char,
+    value: f32,
+) -> gdr_error {
+    with_filter("gdr_filter_set_float", filter, |_, st| {
+        st.set(c_str(name, "name")?, Value::Float(value))
+    })
+}
+
+/// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step).
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_set_int(
+    filter: *mut gdr_filter,
+    name: *const c_char,
+    value: i32,
+) -> gdr_error {
+    with_filter("gdr_filter_set_int", filter, |_, st| {
+        st.set(c_str(name, "name")?, Value::Int(value))
+    })
+}
+
+/// Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`.
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_set_bool(
+    filter: *mut gdr_filter,
+    name: *const c_char,
+    value: bool,
+) -> gdr_error {
+    with_filter("gdr_filter_set_bool", filter, |_, st| {
+        st.set(c_str(name, "name")?, Value::Bool(value))
+    })
+}
+
+/// Read a float parameter into `*value`.
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_get_float(
+    filter: *mut gdr_filter,
+    name: *const c_char,
+    value: *mut f32,
+) -> gdr_error {
+    with_filter("gdr_filter_get_float", filter, |_, st| {
+        let out = out_ptr(value, "value")?;
+        if let Value::Float(v) = st.get(c_str(name, "name")?, Kind::Float)? {
+            *out = v;
+        }
+        Ok(())
+    })
+}
+
+/// Read an integer parameter into `*value`.
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_get_int(
+    filter: *mut gdr_filter,
+    name: *const c_char,
+    value: *mut i32,
+) -> gdr_error {
+    with_filter("gdr_filter_get_int", filter, |_, st| {
+        let out = out_ptr(value, "value")?;
+        if let Value::Int(v) = st.get(c_str(name, "name")?, Kind::Int)? {
+            *out = v;
+        }
+        Ok(())
+    })
+}
+
+/// Read a boolean parameter into `*value`.
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_get_bool(
+    filter: *mut gdr_filter,
+    name: *const c_char,
+    value: *mut bool,
+) -> gdr_error {
+    with_filter("gdr_filter_get_bool", filter, |_, st| {
+        let out = out_ptr(value, "value")?;
+        if let Value::Bool(v) = st.get(c_str(name, "name")?, Kind::Bool)? {
+            *out = v;
+        }
+        Ok(())
+    })
+}
+
+/// Look an image name up: an input layer, or `None` for `"output"`.
+fn image_slot(name: &str) -> CResult<Option<Layer>> {
+    if name.eq_ignore_ascii_case("output") {
+        return Ok(None);
+    }
+    match Layer::from_name(name) {
+        Some(l) if l != Layer::Reference => Ok(Some(l)),
+        _ => err(
+            GDR_ERROR_INVALID_ARGUMENT,
+            format!(
+                "unknown image '{name}', expected one of: color, dx, dy, variance, albedo, normal, depth, output"
+            ),
+        ),
+    }
+}
+
+unsafe fn set_view(
+    function: &'static str,
+    filter: *mut gdr_filter,
+    name: *const c_char,
+    make: impl FnOnce(&str, usize) -> CResult<View>,
+) -> gdr_error {
+    with_filter(function, filter, |_, st| {
+        let name = c_str(name, "name")?;
+        let slot = image_slot(name)?;
+        let view = make(name, slot.map_or(3, Layer::channels))?;
+        match slot {
+            Some(layer) => {
+                st.inputs.insert(layer, view);
+            }
+            None => st.output = Some(view),
+        }
+        st.dirty = true;
+        Ok(())
+    })
+}
+
+/// Set image `name` to an interleaved view: pixel (x, y) channel c at `ptr + y*row_stride + x*pixel_stride + 4*c` bytes.
+///
+/// Names: `"color"`, `"dx"`, `"dy"` (required), `"variance"`, `"albedo"`, `"normal"` (3 channels),
+/// `"depth"` (1 channel) and `"output"` (required, 3 channels, written by `gdr_filter_execute`,
+/// so its memory must be writable). Strides are in bytes; 0 means packed (`pixel_stride =
+/// 4 * channels`, `row_stride = width * pixel_stride`). For RGBA buffers pass 3 channels and a
+/// pixel stride of 16. The memory is borrowed, not copied: it must stay valid until the next
+/// execute returns.
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_set_image(
+    filter: *mut gdr_filter,
+    name: *const c_char,
+    ptr: *const f32,
+    width: usize,
+    height: usize,
+    channels: usize,
+    pixel_stride: usize,
+    row_stride: usize,
+) -> gdr_error {
+    set_view("gdr_filter_set_image", filter, name, |n, expected| {
+        let layout = Layout::Interleaved {
+            pixel: pixel_stride,
+            row: row_stride,
+        };
+        View::new(n, ptr, width, height, channels, expected, layout)
+    })
+}
+
+/// Set image `name` to a planar view: pixel (x, y) channel c at `ptr + c*plane_stride + y*row_stride + 4*x` bytes.
+///
+/// Same names and rules as `gdr_filter_set_image`; 0 strides mean packed (`row_stride = 4 *
+/// width`, `plane_stride = height * row_stride`).
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_set_image_planar(
+    filter: *mut gdr_filter,
+    name: *const c_char,
+    ptr: *const f32,
+    width: usize,
+    height: usize,
+    channels: usize,
+    row_stride: usize,
+    plane_stride: usize,
+) -> gdr_error {
+    set_view(
+        "gdr_filter_set_image_planar",
+        filter,
+        name,
+        |n, expected| {
+            let layout = Layout::Planar {
+                row: row_stride,
+                plane: plane_stride,
+            };
+            View::new(n, ptr, width, height, channels, expected, layout)
+        },
+    )
+}
+
+/// Remove image `name` (an optional layer the method should not use); removing an unset image is not an error.
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_unset_image(
+    filter: *mut gdr_filter,
+    name: *const c_char,
+) -> gdr_error {
+    with_filter("gdr_filter_unset_image", filter, |_, st| {
+        match image_slot(c_str(name, "name")?)? {
+            Some(layer) => st.inputs.remove(&layer),
+            None => st.output.take(),
+        };
+        st.dirty = true;
+        Ok(())
+    })
+}
+
+/// Set (or with NULL remove) the progress callback; it runs on a library thread during execute, never concurrently with itself.
+///
+/// It receives the fraction done in [0, 1] and returns false to cancel. It must not call
+/// functions on the same filter (they fail with `GDR_ERROR_INVALID_OPERATION`) and must not throw.
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_set_progress_callback(
+    filter: *mut gdr_filter,
+    callback: gdr_progress_fn,
+    user: *mut c_void,
+) -> gdr_error {
+    with_filter("gdr_filter_set_progress_callback", filter, |_, st| {
+        st.progress = callback.map(|f| (f, UserPtr(user)));
+        Ok(())
+    })
+}
+
+/// Validate the images and parameters and plan the method for the image size (expensive the first time; cheap when only pointers changed).
+///
+/// Errors: a required image missing (`GDR_ERROR_INVALID_OPERATION`), sizes that disagree
+/// (`GDR_ERROR_INVALID_IMAGE`), an output partially overlapping an input (`GDR_ERROR_OVERLAP`;
+/// the output may be exactly an input view, i.e. in place), a parameter out of range
+/// (`GDR_ERROR_INVALID_ARGUMENT`).
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_commit(filter: *mut gdr_filter) -> gdr_error {
+    with_filter("gdr_filter_commit", filter, |f, st| {
+        let note = st.commit(&f.pool)?;
+        if !note.is_empty() {
+            f.context.log(GDR_LOG_DEBUG, &note);
+        }
+        Ok(())
+    })
+}
+
+/// Run the committed filter: read the input views, reconstruct, write the output view; blocks until done.
+///
+/// Errors: not committed since the last change (`GDR_ERROR_INVALID_OPERATION`), bad values in
+/// strict mode (`GDR_ERROR_INVALID_INPUT`), cancelled (`GDR_ERROR_CANCELLED`; the output is then
+/// left untouched).
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_execute(filter: *mut gdr_filter) -> gdr_error {
+    with_filter("gdr_filter_execute", filter, |f, st| {
+        if st.dirty || st.plan.is_none() {
+            return err(
+                GDR_ERROR_INVALID_OPERATION,
+                "the filter changed since its last commit (or was never committed): call gdr_filter_commit",
+            );
+        }
+        f.cancel.store(false, Ordering::SeqCst);
+        let policy = if st.strict {
+            Policy::Strict
+        } else {
+            Policy::Replace
+        };
+        let spp = (st.spp > 0.0).then_some(st.spp);
+        let inputs = &st.inputs;
+        let frame = f.pool.install(|| {
+            let mut builder = FrameBuilder::new().spp(spp);
+            for (layer, view) in inputs {
+                // SAFETY: the caller keeps the memory valid until execute returns.
+                builder = builder.view(*layer, unsafe { view.array() });
+            }
+            builder.build(policy)
+        })?;
+        let callback = st.progress;
+        let cancel = &f.cancel;
+        let on_progress = move |fraction: f64| -> bool {
+            if cancel.load(Ordering::SeqCst) {
+                return false;
+            }
+            match callback {
+                // SAFETY: the caller registered `cb` with `user` for exactly this use.
+                Some((cb, user)) => unsafe { cb(user.0, fraction) },
+                None => true,
+            }
+        };
+        let progress = Progress::new(&on_progress);
+        let State {
+            plan, out, output, ..
+        } = &mut *st;
+        let plan = plan.as_mut().expect("a committed filter has a plan");
+        let report = plan.execute_into(&frame, out, &progress)?;
+        drop(frame);
+        let output = (*output).expect("a committed filter has an output");
+        // SAFETY: the caller keeps the output memory valid and writable until execute returns;
+        // the inputs were copied into the frame above, so in-place views are fine.
+        unsafe { output.write(out) };
+        let text = report.to_string();
+        if report.sanitized.total() > 0 {
+            f.context.log(
+                GDR_LOG_WARNING,
+                &format!("input values replaced: {}", report.sanitized),
+            );
+        }
+        f.context.log(GDR_LOG_INFO, text.trim_end());
+        st.report = CString::new(text.replace('\0', " ")).unwrap_or_default();
+        Ok(())
+    })
+}
+
+/// Ask a running execute on `filter` to stop (it returns `GDR_ERROR_CANCELLED` promptly); callable from any thread, lock-free.
+///
+/// A cancel when no execute is running has no effect (each execute starts uncancelled).
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_cancel(filter: *mut gdr_filter) -> gdr_error {
+    guard("gdr_filter_cancel", || {
+        let Some(f) = filter.as_ref() else {
+            return err(GDR_ERROR_NULL_POINTER, "filter is NULL");
+        };
+        f.cancel.store(true, Ordering::SeqCst);
+        Ok(())
+    })
+}
+
+/// Point `*text` at the report of the last successful execute ("" before the first); valid until the next execute or release.
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_get_report(
+    filter: *mut gdr_filter,
+    text: *mut *const c_char,
+) -> gdr_error {
+    with_filter("gdr_filter_get_report", filter, |_, st| {
+        *out_ptr(text, "text")? = st.report.as_ptr();
+        Ok(())
+    })
+}
