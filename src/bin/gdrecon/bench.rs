@@ -90,9 +90,15 @@ pub fn run(args: BenchArgs) -> gdrecon::Result<()> {
         "frame,method,width,height,threads,runs,median_s,min_s,max_s,rel_mse,peak_rss_mib"
             .to_owned(),
     ];
-    println!(
+    say!(
         "{:<28} {:<6} {:>10} {:>10} {:>10} {:>12} {:>9}",
-        "frame", "method", "median s", "min s", "max s", "relMSE", "peak MiB"
+        "frame",
+        "method",
+        "median s",
+        "min s",
+        "max s",
+        "relMSE",
+        "peak MiB"
     );
     for (name, frame) in &frames {
         for m in args
@@ -122,7 +128,7 @@ pub fn run(args: BenchArgs) -> gdrecon::Result<()> {
                 None => "-".to_owned(),
             };
             let peak = peak_rss_mib().map_or_else(|| "-".to_owned(), |p| format!("{p:.0}"));
-            println!(
+            say!(
                 "{:<28} {:<6} {:>10.4} {:>10.4} {:>10.4} {:>12} {:>9}",
                 name,
                 m,

@@ -3,6 +3,14 @@
 //! The only place that prints or exits: library errors become one line on stderr and exit
 //! code 1 (clap's usage errors exit with 2).
 
+/// `println!` that ignores a closed stdout (`gdrecon info f.exr | head` must not panic).
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout(), $($arg)*);
+    }};
+}
+
 mod bar;
 mod bench;
 
@@ -206,7 +214,7 @@ fn reconstruct(args: ReconstructArgs) -> gdrecon::Result<()> {
     if args.quiet {
         return Ok(());
     }
-    println!(
+    say!(
         "{}: {} x {}, spp {}, read in {:.3} s",
         args.input.display(),
         frame.width(),
@@ -216,40 +224,40 @@ fn reconstruct(args: ReconstructArgs) -> gdrecon::Result<()> {
             .map_or_else(|| "unknown".to_owned(), |s| s.to_string()),
         read_time.as_secs_f64()
     );
-    print!("{report}");
+    say!("{}", report.to_string().trim_end());
     if let Some(reference) = frame.reference() {
         let base = metrics::compare(frame.color(), reference)?;
         let out = metrics::compare(&image, reference)?;
-        println!("base     {base}");
-        println!("{:<8} {out}", config.method().name());
+        say!("base     {base}");
+        say!("{:<8} {out}", config.method().name());
     }
-    println!("wrote {}", args.output.display());
+    say!("wrote {}", args.output.display());
     Ok(())
 }
 
 fn info(path: &Path) -> gdrecon::Result<()> {
     let raw = io::read_bundle_raw(path)?;
-    println!("{}: {} x {}", path.display(), raw.size.0, raw.size.1);
-    println!(
+    say!("{}: {} x {}", path.display(), raw.size.0, raw.size.1);
+    say!(
         "spp: {}",
         raw.spp
             .map_or_else(|| "unknown".to_owned(), |s| s.to_string())
     );
     for layer in Layer::ALL {
         match raw.sources.get(&layer) {
-            Some(names) => println!("  {:<10} {}", layer.name(), names.join(", ")),
-            None if layer.is_required() => println!("  {:<10} MISSING (required)", layer.name()),
-            None => println!("  {:<10} -", layer.name()),
+            Some(names) => say!("  {:<10} {}", layer.name(), names.join(", ")),
+            None if layer.is_required() => say!("  {:<10} MISSING (required)", layer.name()),
+            None => say!("  {:<10} -", layer.name()),
         }
     }
     if !raw.ignored.is_empty() {
-        println!("ignored channels: {}", raw.ignored.join(", "));
+        say!("ignored channels: {}", raw.ignored.join(", "));
     }
     for w in &raw.warnings {
-        println!("warning: {w}");
+        say!("warning: {w}");
     }
     let frame = raw.into_frame(Policy::Replace)?;
-    println!("{}", frame.sanitized());
+    say!("{}", frame.sanitized());
     Ok(())
 }
 
@@ -257,7 +265,7 @@ fn eval(image: &Path, reference: &Path) -> gdrecon::Result<()> {
     let img = io::read_rgb(image)?;
     let reference = io::read_rgb(reference)?;
     let m = metrics::compare(&img, &reference)?;
-    println!("{m}");
+    say!("{m}");
     Ok(())
 }
 
@@ -269,7 +277,7 @@ fn demo(output: &Path, width: usize, height: usize, spp: f32, seed: u64) -> gdre
     }
     let frame = synth::synthetic_frame(width, height, spp, seed);
     io::write_bundle(output, &frame)?;
-    println!(
+    say!(
         "wrote synthetic bundle {} ({width} x {height}, {spp} spp, seed {seed})",
         output.display()
     );
