@@ -713,6 +713,107 @@ fn cancellation_returns_promptly_on_720p() {
     }
 }
 
+struct Gaps {
+    last: Option<Instant>,
+    max: Duration,
+    calls: u32,
+}
+
+unsafe extern "C" fn record_gaps(user: *mut c_void, _fraction: f64) -> bool {
+    let g = &mut *user.cast::<Gaps>();
+    let now = Instant::now();
+    if let Some(last) = g.last {
+        g.max = g.max.max(now - last);
+    }
+    g.last = Some(now);
+    g.calls += 1;
+    true
+}
+
+#[test]
+fn cancel_from_another_thread_on_720p() {
+    let (w, h) = (1280, 720);
+    let frame = synth::synthetic_frame(w, h, 4.0, 5);
+    let bufs: Vec<Vec<f32>> = INPUTS[..3]
+        .iter()
+        .map(|&l| interleaved(&frame, l))
+        .collect();
+    let mut out = vec![0f32; w * h * 3];
+    let ctx = context();
+    let f = filter(ctx, "l1");
+    let mut gaps = Gaps {
+        last: None,
+        max: Duration::ZERO,
+        calls: 0,
+    };
+    unsafe {
+        for (l, b) in INPUTS[..3].iter().zip(&bufs) {
+            ok(gdr_filter_set_image(
+                f,
+                cs(l.name()).as_ptr(),
+                b.as_ptr(),
+                w,
+                h,
+                3,
+                0,
+                0,
+            ));
+        }
+        ok(gdr_filter_set_image(
+            f,
+            c"output".as_ptr(),
+            out.as_mut_ptr(),
+            w,
+            h,
+            3,
+            0,
+            0,
+        ));
+        ok(gdr_filter_commit(f));
+        ok(gdr_filter_set_progress_callback(
+            f,
+            Some(record_gaps),
+            (&mut gaps as *mut Gaps).cast(),
+        ));
+        let start = Instant::now();
+        ok(gdr_filter_execute(f));
+        eprintln!(
+            "1280x720 l1: {:.0} ms, {} progress calls, largest gap {:.1} ms",
+            start.elapsed().as_secs_f64() * 1e3,
+            gaps.calls,
+            gaps.max.as_secs_f64() * 1e3
+        );
+        for delay_ms in [50u64, 200, 450] {
+            let handle = f as usize;
+            let canceller = std::thread::spawn(move || {
+                std::thread::sleep(Duration::from_millis(delay_ms));
+                let at = Instant::now();
+                ok(gdr_filter_cancel(handle as *mut gdr_filter));
+                at
+            });
+            let status = gdr_filter_execute(f);
+            let returned = Instant::now();
+            let at = canceller.join().unwrap();
+            if status == GDR_ERROR_CANCELLED {
+                let latency = returned.saturating_duration_since(at);
+                eprintln!(
+                    "cancel from another thread after {delay_ms} ms: returned {:.1} ms later",
+                    latency.as_secs_f64() * 1e3
+                );
+                // Bounded by the largest gap between the method's progress calls (the points
+                // where it can stop), plus scheduling noise on a shared machine.
+                let bound = gaps.max + Duration::from_millis(150);
+                assert!(latency < bound, "{latency:?}, bound {bound:?}");
+                last_error();
+            } else {
+                ok(status); // finished before the cancel arrived
+            }
+        }
+        gdr_filter_release(&mut { f });
+        gdr_context_release(&mut { ctx });
+    }
+}
+
 #[test]
 fn version_matches_the_crate() {
     let v = env!("CARGO_PKG_VERSION")

@@ -623,8 +623,11 @@ pub unsafe extern "C" fn gdr_filter_execute(filter: *mut gdr_filter) -> gdr_erro
                 return false;
             }
             match callback {
-                // SAFETY: the caller registered `cb` with `user` for exactly this use.
-                Some((cb, user)) => unsafe { cb(user.0, fraction) },
+                Some((cb, user)) => {
+                    // SAFETY: the caller registered `cb` with `user` for exactly this use.
+                    let go_on = unsafe { cb(user.0, fraction) };
+                    go_on && !cancel.load(Ordering::SeqCst)
+                }
                 None => true,
             }
         };

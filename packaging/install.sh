@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Installs the C library, header and pkg-config file into a prefix:
+#   bash packaging/install.sh PREFIX
+# after `cargo build --release` (honours CARGO_TARGET_DIR). Layout:
+#   PREFIX/include/gdrecon.h
+#   PREFIX/lib/libgdrecon.so.X.Y.Z, libgdrecon.so.X -> (the soname), libgdrecon.so ->
+#   PREFIX/lib/libgdrecon.a
+#   PREFIX/lib/pkgconfig/gdrecon.pc   (pkg-config --cflags --libs [--static] gdrecon)
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+prefix="${1:?usage: install.sh PREFIX}"
+mkdir -p "$prefix"
+prefix="$(cd "$prefix" && pwd)"
+target="${CARGO_TARGET_DIR:-$root/target}/release"
+version="$(sed -n 's/^version = "\(.*\)"/\1/p' "$root/Cargo.toml" | head -1)"
+major="${version%%.*}"
+for f in libgdrecon.so libgdrecon.a; do
+    [ -f "$target/$f" ] || { echo "install.sh: $target/$f is missing: run cargo build --release" >&2; exit 1; }
+done
+mkdir -p "$prefix/include" "$prefix/lib/pkgconfig"
+install -m 644 "$root/include/gdrecon.h" "$prefix/include/gdrecon.h"
+install -m 755 "$target/libgdrecon.so" "$prefix/lib/libgdrecon.so.$version"
+ln -sf "libgdrecon.so.$version" "$prefix/lib/libgdrecon.so.$major"
+ln -sf "libgdrecon.so.$major" "$prefix/lib/libgdrecon.so"
+install -m 644 "$target/libgdrecon.a" "$prefix/lib/libgdrecon.a"
+# What a static link needs besides the archive (rustc's --print native-static-libs on Linux).
+static_libs="-lgcc_s -lutil -lrt -lpthread -lm -ldl -lc"
+sed -e "s|@PREFIX@|$prefix|" -e "s|@VERSION@|$version|" -e "s|@STATIC_LIBS@|$static_libs|" \
+    "$root/packaging/gdrecon.pc.in" > "$prefix/lib/pkgconfig/gdrecon.pc"
+echo "installed gdrecon $version into $prefix"

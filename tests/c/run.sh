@@ -1,0 +1,133 @@
+#!/usr/bin/env bash
+# The C API's tests, from C and C++ against the installed header and libraries:
+# 1. build the release library and install it into a temporary prefix (packaging/install.sh);
+# 2. check that the shared library exports only gdr_ symbols and has its soname;
+# 3. write the Rust API's reference outputs (tests/capi.rs, write_reference_for_c);
+# 4. compile tests/c/test_capi.c as C99 and as C++ (-Wall -Wextra -Werror -pedantic), found
+#    through pkg-config, dynamically and statically linked, and run them (bit-for-bit equality,
+#    layouts, every error case, cancellation latency);
+# 5. run the C test again under valgrind (no leaks, no invalid accesses);
+# 6. build and run the C, C++ and Python examples on the bundled sample frame.
+# Honours CARGO_TARGET_DIR. The last line is "N passed, N failed".
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
+cd "$root"
+target="${CARGO_TARGET_DIR:-$root/target}"
+work="$(mktemp -d)"
+trap 'rm -rf "$work"' EXIT
+prefix="$work/prefix"
+sample="$root/examples/data/sample.exr"
+passed=0
+failed=0
+
+step() { echo "== $*"; }
+ok() { passed=$((passed + 1)); echo "ok: $*"; }
+bad() { failed=$((failed + 1)); echo "FAILED: $*"; }
+# Runs a test binary and adds the counts from its closing "N passed, N failed" line.
+counted() {
+    local name="$1"
+    shift
+    local log="$work/$name.log" status=0
+    "$@" >"$log" 2>&1 || status=$?
+    cat "$log"
+    local line
+    line="$(grep -E '^[0-9]+ passed, [0-9]+ failed$' "$log" | tail -1 || true)"
+    if [ -z "$line" ]; then
+        bad "$name: no result line (exit $status)"
+        return
+    fi
+    passed=$((passed + ${line%% passed*}))
+    local f="${line#*passed, }"
+    failed=$((failed + ${f%% failed}))
+    [ "$status" -eq 0 ] || [ "${f%% failed}" -ne 0 ] || bad "$name: exit status $status"
+}
+
+step "tools"
+missing=()
+for tool in gcc g++ make pkg-config valgrind nm readelf python3; do
+    command -v "$tool" >/dev/null || missing+=("$tool")
+done
+if [ "${#missing[@]}" -gt 0 ]; then
+    echo "installing with apt: ${missing[*]}"
+    pkgs=()
+    for tool in "${missing[@]}"; do
+        case "$tool" in
+        nm | readelf) pkgs+=(binutils) ;;
+        *) pkgs+=("$tool") ;;
+        esac
+    done
+    apt-get update -qq >/dev/null && apt-get install -y -qq "${pkgs[@]}" >/dev/null
+fi
+
+step "build the release library"
+cargo build --release --locked --lib
+bash packaging/install.sh "$prefix"
+export PKG_CONFIG_PATH="$prefix/lib/pkgconfig"
+
+step "exported symbols"
+symbols="$(nm -D --defined-only "$prefix/lib/libgdrecon.so" | awk '$2 ~ /^[TDBR]$/ {print $3}' | sort)"
+others="$(grep -v '^gdr_' <<<"$symbols" || true)"
+echo "$(wc -l <<<"$symbols") exported symbols: $(tr '\n' ' ' <<<"$symbols")"
+if [ -z "$others" ]; then ok "only gdr_ symbols are exported"; else bad "symbols without the gdr_ prefix: $others"; fi
+soname="$(readelf -d "$prefix/lib/libgdrecon.so" | sed -n 's/.*SONAME.*\[\(.*\)\]/\1/p')"
+if [ "$soname" = "libgdrecon.so.$(sed -n 's/^version = "\([0-9]*\)\..*/\1/p' Cargo.toml | head -1)" ]; then
+    ok "soname $soname"
+else
+    bad "soname is '$soname'"
+fi
+
+step "Rust reference outputs"
+GDR_CAPI_REF_DIR="$work/ref" cargo test --release --locked --test capi -- --ignored --exact \
+    write_reference_for_c >"$work/ref.log" 2>&1 || { cat "$work/ref.log"; exit 1; }
+ok "reference written"
+
+step "compile the C tests (C99, C++, static)"
+cflags="$(pkg-config --cflags gdrecon)"
+libs="$(pkg-config --libs gdrecon)"
+static_libs="$(pkg-config --libs --static gdrecon)"
+warn=(-Wall -Wextra -Werror -pedantic)
+gcc -std=c99 "${warn[@]}" -O1 -g $cflags tests/c/test_capi.c -o "$work/test_c" $libs -lm \
+    -Wl,-rpath,"$prefix/lib" && ok "gcc -std=c99"
+g++ -x c++ -std=c++11 "${warn[@]}" -O1 -g $cflags tests/c/test_capi.c -o "$work/test_cpp" $libs \
+    -Wl,-rpath,"$prefix/lib" && ok "g++ -std=c++11"
+gcc -std=c99 "${warn[@]}" -O1 $cflags tests/c/test_capi.c -o "$work/test_static" \
+    "$prefix/lib/libgdrecon.a" ${static_libs/-lgdrecon/} -lm && ok "gcc, static library"
+if readelf -d "$work/test_c" | grep -q "NEEDED.*libgdrecon.so.0"; then ok "linked against the soname"; else bad "test_c does not need libgdrecon.so.0"; fi
+
+step "run the C tests"
+counted test_c "$work/test_c" "$work/ref" "$sample"
+counted test_cpp "$work/test_cpp" "$work/ref" "$sample"
+counted test_static "$work/test_static" "$work/ref"
+
+step "valgrind"
+GDR_TEST_NO_TIMING=1 counted valgrind valgrind -q --error-exitcode=1 --leak-check=full \
+    --errors-for-leak-kinds=definite,indirect --show-leak-kinds=definite,indirect \
+    "$work/test_c" "$work/ref" "$sample"
+if grep -qE "definitely lost|indirectly lost|Invalid (read|write)|uninitialised" "$work/valgrind.log"; then
+    bad "valgrind reported errors"
+else
+    ok "valgrind: no leaks, no invalid accesses"
+fi
+
+step "examples"
+make -s -C examples/c GDRECON_PREFIX="$prefix" BUILD="$work/examples" >/dev/null && ok "examples/c build"
+for ex in reconstruct reconstruct_cpp; do
+    if "$work/examples/$ex" "$sample" "$work/out_$ex" >"$work/$ex.log" 2>&1; then
+        cat "$work/$ex.log"
+        ok "examples/c/$ex"
+    else
+        cat "$work/$ex.log"
+        bad "examples/c/$ex"
+    fi
+done
+if python3 examples/python/reconstruct.py --lib "$prefix/lib/libgdrecon.so" "$sample" "$work/out_py" \
+    >"$work/py.log" 2>&1; then
+    cat "$work/py.log"
+    ok "examples/python"
+else
+    cat "$work/py.log"
+    bad "examples/python"
+fi
+
+echo "$passed passed, $failed failed"
+[ "$failed" -eq 0 ]
