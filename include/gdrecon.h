@@ -230,6 +230,9 @@ gdr_error gdr_filter_set_float(gdr_filter *filter, const char *name, float value
 gdr_error gdr_filter_set_int(gdr_filter *filter, const char *name, int32_t value);
 
 // Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`.
+//
+// `"internal_test_panic"` = true is reserved for tests: it raises an internal error inside the
+// library, which must come back as `GDR_ERROR_UNKNOWN` (no panic crosses the ABI).
 gdr_error gdr_filter_set_bool(gdr_filter *filter, const char *name, bool value);
 
 // Read a float parameter into `*value`.

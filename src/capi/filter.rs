@@ -384,6 +384,9 @@ pub unsafe extern "C" fn gdr_filter_set_int(
 }
 
 /// Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`.
+///
+/// `"internal_test_panic"` = true is reserved for tests: it raises an internal error inside the
+/// library, which must come back as `GDR_ERROR_UNKNOWN` (no panic crosses the ABI).
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_set_bool(
     filter: *mut gdr_filter,

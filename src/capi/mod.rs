@@ -4,7 +4,7 @@
 //! header comment states the rules every C caller relies on: handles, errors, threads, ABI
 //! evolution). Every exported function
 //! - returns a [`gdr_error`] status (or a plain value for the few that cannot fail);
-//! - runs inside [`guard`], which catches panics (a panic never unwinds into C) and records the
+//! - runs inside `guard`, which catches panics (a panic never unwinds into C) and records the
 //!   thread's last error message;
 //! - checks every pointer it is given for NULL before use.
 //!
