@@ -488,12 +488,15 @@ impl Reconstructor for PoissonL1 {
                     self.update_scale();
                 }
             }
+            // (step + f) / steps: exact at step boundaries, so progress is monotone.
+            let at = |f: f64| progress.update((f64::from(step) + f) / f64::from(steps));
+            // Report (and let the caller cancel) at every step, also those whose CG has
+            // nothing to do: cancellation latency stays below one step.
+            at(0.0)?;
             let bb = self.weighted_rhs(frame);
             let t1 = Instant::now();
             reweight_time += t1 - t0;
-            let scoped =
-                progress.scoped(f64::from(step) / f64::from(steps), 1.0 / f64::from(steps));
-            let outcome = self.cg(bb, &|f| scoped.update(f))?;
+            let outcome = self.cg(bb, &at)?;
             cg_time += t1.elapsed();
             total_iters += outcome.iterations;
             last_rel = outcome.rel_residual;

@@ -1,0 +1,512 @@
+//! Gradient-guided filtering: per pixel, one weight vector over a `(2r+1)^2` window, shared by
+//! R, G, B, on the probability simplex, minimising `w^T Q w` with
+//! `Q = sum_a alpha_a sum_c b_ac b_ac^T + diag(v)` (the release's formulation of the paper's
+//! Eq. 21). The bias vectors over the window, for pixel `p` and neighbour `q`:
+//! - `b0 = E(q) - E(p)`, `alpha = 1`: the enhanced image's differences estimate `mu_q - mu_p`;
+//! - `b1 = albedo(q) - albedo(p) + (img(q) - up(q))`, `alpha = 16 / sqrt(N)`;
+//! - `b2 = normal(q) - normal(p) + (img(q) - up(q))`, `alpha = 0.16 / sqrt(N)`;
+//! - `b3 = img(q) - guide(p)`, `alpha = 8 / sqrt(N)`;
+//! - `b4 = up(q) - up(p)`, finer levels only, `alpha = min(8 / sqrt(N), 1)`;
+//!
+//! where `img` is the noisy colour, `guide` the pre-denoised image and `up` the upsampled result
+//! of the coarser level (`img` itself at the coarsest). `v_q` is the summed channel variance of
+//! `img` (plus the upsampled variance at finer levels).
+//!
+//! The solver is the release's: start from weights proportional to
+//! `1 / sqrt(v_q + sum of all b(q)^2 + 0.1)`; at iteration `k` move toward vertex `e_i`,
+//! `i = k mod n`, with the exact line-search step `clamp(-d^T Q w / d^T Q d, 0, 1)`,
+//! `d = e_i - w`; stop after `n` consecutive steps changing `w` by less than 1e-8, or after
+//! `3n + 1` iterations. We exploit the low rank of `Q`: the projections `s = B w` (at most 15
+//! values), `sum v w^2` and a global scale of `w` are updated in O(15) per iteration instead
+//! of the O(15 n) of a direct evaluation. Terms whose weight is zero (no features, coarsest
+//! level) are not built at all.
+
+use rayon::prelude::*;
+
+use super::util::reflect;
+use crate::image::Image;
+
+/// Largest window: radius 4, 81 neighbours.
+pub(crate) const MAX_N: usize = 81;
+/// Most bias rows: 5 terms x 3 channels.
+pub(crate) const MAX_K: usize = 15;
+
+/// One level's inputs to the filter.
+pub(crate) struct QpLevel<'a> {
+    pub img: &'a Image,
+    pub var: &'a Image,
+    pub enhanced: &'a Image,
+    pub guide: &'a Image,
+    pub albedo: Option<&'a Image>,
+    pub normal: Option<&'a Image>,
+    /// The upsampled coarser result and its variance (finer levels).
+    pub up: Option<(&'a Image, &'a Image)>,
+    pub spp: f32,
+    pub radius: usize,
+}
+
+/// Term weights `alpha` of the five bias terms for `spp` samples (0 = term off).
+pub(crate) fn alphas(spp: f32, has_albedo: bool, has_normal: bool, finer: bool) -> [f32; 5] {
+    let s = spp.max(1e-6).sqrt();
+    [
+        1.0,
+        if has_albedo { 16.0 / s } else { 0.0 },
+        if has_normal { 0.16 / s } else { 0.0 },
+        8.0 / s,
+        if finer { (8.0 / s).min(1.0) } else { 0.0 },
+    ]
+}
+
+/// The state of one simplex QP solve, `Q = B^T B + diag(v)`.
+pub(crate) struct Simplex<'a> {
+    pub b: &'a [[f32; MAX_N]],
+    pub v: &'a [f32],
+    pub n: usize,
+}
+
+impl Simplex<'_> {
+    /// Runs the cyclic vertex line search from `w` (on the simplex) in O(K) per iteration;
+    /// returns the number of iterations.
+    pub fn solve(&self, w: &mut [f32], max_iter: usize) -> usize {
+        let (n, k) = (self.n, self.b.len());
+        let mut s = [0.0f32; MAX_K];
+        let mut col2 = [0.0f32; MAX_N];
+        for (row, sk) in self.b.iter().zip(s.iter_mut()) {
+            *sk = (0..n).map(|q| row[q] * w[q]).sum();
+            for q in 0..n {
+                col2[q] += row[q] * row[q];
+            }
+        }
+        let mut svw: f32 = (0..n).map(|q| self.v[q] * w[q] * w[q]).sum();
+        let mut scale = 1.0f32;
+        let mut quiet = 0;
+        let mut it = 0;
+        while it < max_iter && quiet < n {
+            it += 1;
+            let i = it % n;
+            if i == 0 {
+                // Once per sweep (amortised O(K)): fold the scale in, renormalise the sum to 1
+                // and recompute the projections, so that f32 drift cannot accumulate.
+                let total: f32 = w[..n].iter().sum::<f32>() * scale;
+                for x in &mut w[..n] {
+                    *x *= scale / total;
+                }
+                scale = 1.0;
+                for (row, sk) in self.b.iter().zip(s.iter_mut()) {
+                    *sk = (0..n).map(|q| row[q] * w[q]).sum();
+                }
+                svw = (0..n).map(|q| self.v[q] * w[q] * w[q]).sum();
+            }
+            let wi = scale * w[i];
+            let mut qw_i = self.v[i] * wi;
+            let mut ss = 0.0;
+            for (row, &sr) in self.b.iter().zip(&s[..k]) {
+                qw_i += row[i] * sr;
+                ss += sr * sr;
+            }
+            let wqw = ss + svw;
+            let dqw = qw_i - wqw;
+            let dqd = col2[i] + self.v[i] - 2.0 * qw_i + wqw;
+            let t = -dqw / dqd;
+            let t = if t.is_finite() {
+                t.clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            if t < 1e-8 {
+                quiet += 1;
+                continue;
+            }
+            quiet = 0;
+            let keep = 1.0 - t;
+            for (sr, row) in s[..k].iter_mut().zip(self.b) {
+                *sr = keep * *sr + t * row[i];
+            }
+            svw = keep * keep * svw + 2.0 * t * keep * self.v[i] * wi + t * t * self.v[i];
+            let new_scale = keep * scale;
+            if new_scale < 1e-12 {
+                w[..n].fill(0.0);
+                w[i] = 1.0;
+                scale = 1.0;
+            } else {
+                w[i] += t / new_scale;
+                scale = new_scale;
+            }
+        }
+        for x in &mut w[..n] {
+            *x *= scale;
+        }
+        it
+    }
+}
+
+impl Simplex<'_> {
+    /// Solves the QP to optimality (KKT gap below `tol`) by pairwise steps (SMO): move weight
+    /// from the support index with the largest `(Qw)_j` to the index with the smallest, with
+    /// the exact line search. O(K n) per iteration, linear convergence (`Q` is positive
+    /// definite when `v > 0`). For tests and as the `exact` reference of the release's
+    /// early-stopped cyclic solver.
+    pub fn solve_exact(&self, w: &mut [f32], max_iter: usize, tol: f64) -> usize {
+        let n = self.n;
+        let mut wd: Vec<f64> = w[..n].iter().map(|&x| f64::from(x)).collect();
+        let qw = |wd: &[f64]| -> Vec<f64> {
+            let s: Vec<f64> = self
+                .b
+                .iter()
+                .map(|r| (0..n).map(|q| f64::from(r[q]) * wd[q]).sum())
+                .collect();
+            (0..n)
+                .map(|j| {
+                    self.b
+                        .iter()
+                        .zip(&s)
+                        .map(|(r, s)| f64::from(r[j]) * s)
+                        .sum::<f64>()
+                        + f64::from(self.v[j]) * wd[j]
+                })
+                .collect()
+        };
+        let mut it = 0;
+        while it < max_iter {
+            it += 1;
+            let g = qw(&wd);
+            let i = (0..n).min_by(|&a, &b| g[a].total_cmp(&g[b])).unwrap_or(0);
+            let Some(j) = (0..n)
+                .filter(|&j| wd[j] > 0.0)
+                .max_by(|&a, &b| g[a].total_cmp(&g[b]))
+            else {
+                break;
+            };
+            let gap = g[j] - g[i];
+            if gap <= tol {
+                break;
+            }
+            let bij: f64 = self
+                .b
+                .iter()
+                .map(|r| f64::from(r[i]) * f64::from(r[j]))
+                .sum();
+            let bii: f64 = self.b.iter().map(|r| f64::from(r[i]).powi(2)).sum();
+            let bjj: f64 = self.b.iter().map(|r| f64::from(r[j]).powi(2)).sum();
+            let curv = bii + bjj - 2.0 * bij + f64::from(self.v[i]) + f64::from(self.v[j]);
+            let t = if curv > 0.0 {
+                (gap / curv).min(wd[j])
+            } else {
+                wd[j]
+            };
+            wd[i] += t;
+            wd[j] -= t;
+        }
+        for (x, &d) in w[..n].iter_mut().zip(&wd) {
+            *x = d as f32;
+        }
+        it
+    }
+}
+
+/// Runs the filter over a level; returns the filtered colour and its variance.
+pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image) {
+    let (w, h) = level.img.size();
+    let n_px = w * h;
+    let r = level.radius as isize;
+    let side = 2 * level.radius + 1;
+    let n = side * side;
+    let al = alphas(
+        level.spp,
+        level.albedo.is_some(),
+        level.normal.is_some(),
+        level.up.is_some(),
+    );
+    let sq: [f32; 5] = al.map(f32::sqrt);
+    let img = level.img.as_slice();
+    let var = level.var.as_slice();
+    let enh = level.enhanced.as_slice();
+    let guide = level.guide.as_slice();
+    let up = level.up.map(|(u, _)| u.as_slice());
+    let up_var = level.up.map(|(_, v)| v.as_slice());
+    let alb = level.albedo.map(Image::as_slice);
+    let nrm = level.normal.map(Image::as_slice);
+    let rows: Vec<(Vec<f32>, Vec<f32>)> = (0..h)
+        .into_par_iter()
+        .map(|y| {
+            let mut out = vec![0.0f32; 3 * w];
+            let mut out_var = vec![0.0f32; 3 * w];
+            let mut b = [[0.0f32; MAX_N]; MAX_K];
+            let mut v = [0.0f32; MAX_N];
+            let mut wts = [0.0f32; MAX_N];
+            let mut idx = [0usize; MAX_N];
+            for x in 0..w {
+                let p = y * w + x;
+                let mut j = 0;
+                for dy in -r..=r {
+                    let yy = reflect(y as isize + dy, h);
+                    for dx in -r..=r {
+                        idx[j] = yy * w + reflect(x as isize + dx, w);
+                        j += 1;
+                    }
+                }
+                for (j, &q) in idx[..n].iter().enumerate() {
+                    let mut vq = 0.0;
+                    for c in 0..3 {
+                        vq += var[c * n_px + q].max(0.0);
+                        if let Some(uv) = up_var {
+                            vq += uv[c * n_px + q].max(0.0);
+                        }
+                    }
+                    v[j] = vq;
+                }
+                let mut k = 0;
+                let mut push = |k: &mut usize, f: &dyn Fn(usize, usize) -> f32, a: usize| {
+                    if al[a] == 0.0 {
+                        return;
+                    }
+                    for c in 0..3 {
+                        for (j, &q) in idx[..n].iter().enumerate() {
+                            b[*k][j] = sq[a] * f(c, q);
+                        }
+                        *k += 1;
+                    }
+                };
+                let resid = |c: usize, q: usize| match up {
+                    Some(u) => img[c * n_px + q] - u[c * n_px + q],
+                    None => 0.0,
+                };
+                push(&mut k, &|c, q| enh[c * n_px + q] - enh[c * n_px + p], 0);
+                if let Some(a) = alb {
+                    push(
+                        &mut k,
+                        &|c, q| a[c * n_px + q] - a[c * n_px + p] + resid(c, q),
+                        1,
+                    );
+                }
+                if let Some(f) = nrm {
+                    push(
+                        &mut k,
+                        &|c, q| f[c * n_px + q] - f[c * n_px + p] + resid(c, q),
+                        2,
+                    );
+                }
+                push(&mut k, &|c, q| img[c * n_px + q] - guide[c * n_px + p], 3);
+                if let Some(u) = up {
+                    push(&mut k, &|c, q| u[c * n_px + q] - u[c * n_px + p], 4);
+                }
+                // Initial weights: inverse root of each neighbour's total (unweighted) cost.
+                let mut total = 0.0;
+                for j in 0..n {
+                    let mut e = v[j] + 0.1;
+                    for (row, a) in b[..k].iter().zip(0..) {
+                        let s = sq[term_of(a, &al)];
+                        let raw = if s > 0.0 { row[j] / s } else { 0.0 };
+                        e += raw * raw;
+                    }
+                    wts[j] = 1.0 / e.sqrt();
+                    total += wts[j];
+                }
+                for x in &mut wts[..n] {
+                    *x /= total;
+                }
+                Simplex {
+                    b: &b[..k],
+                    v: &v[..n],
+                    n,
+                }
+                .solve(&mut wts, 3 * n + 1);
+                for c in 0..3 {
+                    let (mut o, mut ov) = (0.0f32, 0.0f32);
+                    for (j, &q) in idx[..n].iter().enumerate() {
+                        o += wts[j] * img[c * n_px + q];
+                        ov += wts[j] * wts[j] * var[c * n_px + q];
+                    }
+                    out[c * w + x] = o;
+                    out_var[c * w + x] = ov;
+                }
+            }
+            (out, out_var)
+        })
+        .collect();
+    let mut out = Image::zeros(3, h, w);
+    let mut out_var = Image::zeros(3, h, w);
+    for (y, (o, ov)) in rows.iter().enumerate() {
+        for c in 0..3 {
+            out.plane_mut(c)
+                .row_mut(y)
+                .as_slice_mut()
+                .expect("contiguous")
+                .copy_from_slice(&o[c * w..(c + 1) * w]);
+            out_var
+                .plane_mut(c)
+                .row_mut(y)
+                .as_slice_mut()
+                .expect("contiguous")
+                .copy_from_slice(&ov[c * w..(c + 1) * w]);
+        }
+    }
+    (out, out_var)
+}
+
+/// Which of the five terms the `row`-th built row belongs to (rows come in threes, skipping
+/// terms that are off).
+fn term_of(row: usize, al: &[f32; 5]) -> usize {
+    let mut seen = 0;
+    for (a, &alpha) in al.iter().enumerate() {
+        if alpha != 0.0 {
+            if row < seen + 3 {
+                return a;
+            }
+            seen += 3;
+        }
+    }
+    4
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    struct Lcg(u64);
+    impl Lcg {
+        fn next(&mut self) -> f32 {
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((self.0 >> 40) as f32) / (1u64 << 24) as f32
+        }
+    }
+
+    fn random_problem(
+        rng: &mut Lcg,
+        k: usize,
+        n: usize,
+    ) -> (Vec<[f32; MAX_N]>, Vec<f32>, Vec<f32>) {
+        let b: Vec<[f32; MAX_N]> = (0..k)
+            .map(|_| std::array::from_fn(|j| if j < n { rng.next() - 0.5 } else { 0.0 }))
+            .collect();
+        let v: Vec<f32> = (0..n).map(|_| 0.01 + 0.1 * rng.next()).collect();
+        let mut w: Vec<f32> = (0..MAX_N)
+            .map(|j| if j < n { 0.1 + rng.next() } else { 0.0 })
+            .collect();
+        let s: f32 = w.iter().sum();
+        w.iter_mut().for_each(|x| *x /= s);
+        (b, v, w)
+    }
+
+    /// The same iteration evaluated densely: explicit Q, explicit renormalised w.
+    fn naive(b: &[[f32; MAX_N]], v: &[f32], n: usize, w: &mut [f64], max_iter: usize) {
+        let q = |i: usize, j: usize| -> f64 {
+            let mut s: f64 = b.iter().map(|r| f64::from(r[i]) * f64::from(r[j])).sum();
+            if i == j {
+                s += f64::from(v[i]);
+            }
+            s
+        };
+        let mut quiet = 0;
+        let mut it = 0;
+        while it < max_iter && quiet < n {
+            it += 1;
+            let i = it % n;
+            let qw: Vec<f64> = (0..n)
+                .map(|a| (0..n).map(|c| q(a, c) * w[c]).sum())
+                .collect();
+            let wqw: f64 = (0..n).map(|a| w[a] * qw[a]).sum();
+            let dqw = qw[i] - wqw;
+            let dqd = q(i, i) - 2.0 * qw[i] + wqw;
+            let t = (-dqw / dqd).clamp(0.0, 1.0);
+            if t < 1e-8 {
+                quiet += 1;
+                continue;
+            }
+            quiet = 0;
+            for x in w[..n].iter_mut() {
+                *x *= 1.0 - t;
+            }
+            w[i] += t;
+            let s: f64 = w[..n].iter().sum();
+            w[..n].iter_mut().for_each(|x| *x /= s);
+        }
+    }
+
+    #[test]
+    fn incremental_solver_equals_a_dense_evaluation() {
+        let mut rng = Lcg(7);
+        for (k, n) in [(15, 81), (6, 49), (3, 9), (1, 25)] {
+            let (b, v, w0) = random_problem(&mut rng, k, n);
+            let mut fast = w0.clone();
+            Simplex { b: &b, v: &v, n }.solve(&mut fast, 3 * n + 1);
+            let mut slow: Vec<f64> = w0.iter().map(|&x| f64::from(x)).collect();
+            naive(&b, &v, n, &mut slow, 3 * n + 1);
+            let diff = (0..n)
+                .map(|j| (f64::from(fast[j]) - slow[j]).abs())
+                .fold(0.0, f64::max);
+            assert!(
+                diff < 1e-4,
+                "k {k} n {n}: max |w_fast - w_dense| = {diff:e}"
+            );
+        }
+    }
+
+    #[test]
+    fn solution_is_on_the_simplex_and_satisfies_kkt() {
+        let mut rng = Lcg(3);
+        for (k, n) in [(3, 9), (6, 25), (15, 81)] {
+            let (b, v, mut w) = random_problem(&mut rng, k, n);
+            let problem = Simplex { b: &b, v: &v, n };
+            let mut exact = w.clone();
+            problem.solve_exact(&mut exact, 100_000, 1e-9);
+            // The release's early-stopped cyclic solver gets close to the optimum's objective.
+            let obj = |w: &[f32]| -> f64 {
+                let bw: f64 = b
+                    .iter()
+                    .map(|r| {
+                        (0..n)
+                            .map(|j| f64::from(r[j]) * f64::from(w[j]))
+                            .sum::<f64>()
+                            .powi(2)
+                    })
+                    .sum();
+                bw + (0..n)
+                    .map(|j| f64::from(v[j]) * f64::from(w[j]).powi(2))
+                    .sum::<f64>()
+            };
+            let start = obj(&w);
+            problem.solve(&mut w, 3 * n + 1);
+            let (fast, best) = (obj(&w), obj(&exact));
+            assert!(
+                fast - best <= 0.25 * (start - best) + 1e-9,
+                "n {n}: cyclic {fast} start {start} optimum {best}"
+            );
+            let w = exact;
+            let sum: f32 = w[..n].iter().sum();
+            assert!((sum - 1.0).abs() < 1e-5, "sum {sum}");
+            assert!(w[..n].iter().all(|&x| x >= 0.0));
+            // KKT: (Qw)_i = mu on the support, >= mu elsewhere, mu = w^T Q w.
+            let qw: Vec<f64> = (0..n)
+                .map(|i| {
+                    let bw: Vec<f64> = b
+                        .iter()
+                        .map(|r| (0..n).map(|j| f64::from(r[j]) * f64::from(w[j])).sum())
+                        .collect();
+                    b.iter()
+                        .zip(&bw)
+                        .map(|(r, s)| f64::from(r[i]) * s)
+                        .sum::<f64>()
+                        + f64::from(v[i]) * f64::from(w[i])
+                })
+                .collect();
+            let mu: f64 = (0..n).map(|i| f64::from(w[i]) * qw[i]).sum();
+            for i in 0..n {
+                assert!(qw[i] >= mu - 1e-5, "n {n} i {i}: {} < {mu}", qw[i]);
+                if w[i] > 1e-3 {
+                    assert!((qw[i] - mu).abs() < 1e-5, "n {n} i {i}: {} vs {mu}", qw[i]);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn term_rows_map_back_to_their_terms() {
+        let al = [1.0, 0.0, 0.5, 0.2, 0.0];
+        let got: Vec<usize> = (0..9).map(|r| term_of(r, &al)).collect();
+        assert_eq!(got, [0, 0, 0, 2, 2, 2, 3, 3, 3]);
+    }
+}
