@@ -141,6 +141,11 @@ fn packed_results_equal_the_rust_api_bit_for_bit() {
         let mut f = filter(ctx, method.name());
         let mut out = vec![0f32; W * H * 3];
         unsafe {
+            ok(gdr_filter_set_float(
+                f,
+                c"spp".as_ptr(),
+                frame.spp().unwrap(),
+            ));
             set_packed(f, &bufs);
             run(f, &mut out);
             assert!(same_bits(&out, &expected), "method {method}");

@@ -162,6 +162,7 @@ fn output_never_holds_nan_or_inf_whatever_the_input() {
         .image(Layer::Color, color)
         .image(Layer::Dx, dx)
         .image(Layer::Dy, dy)
+        .spp(Some(4.0))
         .build(Policy::Replace)
         .unwrap();
     for m in gdrecon::Method::ALL {

@@ -8,8 +8,7 @@
 //! out of every result.
 
 mod dct;
-#[allow(dead_code)] // stages land before the method that runs them
-mod filter;
+pub mod filter;
 mod ops;
 pub mod poisson_l1;
 pub mod poisson_l2;
@@ -19,6 +18,7 @@ use std::str::FromStr;
 
 use rayon::prelude::*;
 
+pub use filter::{Filter, FilterConfig};
 pub use poisson_l1::{PoissonL1, PoissonL1Config};
 pub use poisson_l2::{PoissonL2, PoissonL2Config};
 
@@ -53,17 +53,20 @@ pub enum Method {
     PoissonL2,
     /// Screened Poisson, group L1, by IRLS with preconditioned CG (`l1`).
     PoissonL1,
+    /// Gradient-guided filtering, FRGR (Yan et al. 2024) (`filter`); single level so far.
+    Filter,
 }
 
 impl Method {
     /// Every method, in the order the CLI lists them.
-    pub const ALL: [Method; 2] = [Method::PoissonL2, Method::PoissonL1];
+    pub const ALL: [Method; 3] = [Method::PoissonL2, Method::PoissonL1, Method::Filter];
 
     /// The CLI / C ABI name.
     pub fn name(self) -> &'static str {
         match self {
             Method::PoissonL2 => "l2",
             Method::PoissonL1 => "l1",
+            Method::Filter => "filter",
         }
     }
 }
@@ -97,6 +100,8 @@ pub enum MethodConfig {
     PoissonL2(PoissonL2Config),
     /// See [`PoissonL1Config`].
     PoissonL1(PoissonL1Config),
+    /// See [`FilterConfig`].
+    Filter(FilterConfig),
 }
 
 impl MethodConfig {
@@ -105,6 +110,7 @@ impl MethodConfig {
         match method {
             Method::PoissonL2 => MethodConfig::PoissonL2(PoissonL2Config::default()),
             Method::PoissonL1 => MethodConfig::PoissonL1(PoissonL1Config::default()),
+            Method::Filter => MethodConfig::Filter(FilterConfig::default()),
         }
     }
 
@@ -113,6 +119,7 @@ impl MethodConfig {
         match self {
             MethodConfig::PoissonL2(_) => Method::PoissonL2,
             MethodConfig::PoissonL1(_) => Method::PoissonL1,
+            MethodConfig::Filter(_) => Method::Filter,
         }
     }
 
@@ -121,6 +128,7 @@ impl MethodConfig {
         match &mut self {
             MethodConfig::PoissonL2(c) => c.alpha = alpha,
             MethodConfig::PoissonL1(c) => c.alpha = alpha,
+            MethodConfig::Filter(_) => {}
         }
         self
     }
@@ -129,6 +137,7 @@ impl MethodConfig {
         Ok(match *self {
             MethodConfig::PoissonL2(c) => Box::new(PoissonL2::new(c, width, height)?),
             MethodConfig::PoissonL1(c) => Box::new(PoissonL1::new(c, width, height)?),
+            MethodConfig::Filter(c) => Box::new(Filter::new(c, width, height)?),
         })
     }
 }

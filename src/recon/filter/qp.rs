@@ -140,6 +140,7 @@ impl Simplex<'_> {
     }
 }
 
+#[cfg(test)]
 impl Simplex<'_> {
     /// Solves the QP to optimality (KKT gap below `tol`) by pairwise steps (SMO): move weight
     /// from the support index with the largest `(Qw)_j` to the index with the smallest, with
