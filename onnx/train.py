@@ -172,6 +172,8 @@ def main(argv=None):
         sums = {"grad": 0.0, "data": 0.0, "first": 0.0, "total": 0.0}
         for step in range(args.steps):
             data, grad, lin, dxc, dyc, featc = sample_batch(arr, rng, args.batch, args.patch)
+            if not feats:
+                data = data[:, :1].contiguous()   # C(I_c) only
             y = net(data, grad)
             lg = gn.loss_grad(y, dxc, dyc)
             ld = gn.loss_data(y, lin)
