@@ -18,7 +18,7 @@ use std::str::FromStr;
 
 use rayon::prelude::*;
 
-pub use filter::{Filter, FilterConfig};
+pub use filter::{Filter, FilterConfig, FilterGuide};
 pub use poisson_l1::{PoissonL1, PoissonL1Config};
 pub use poisson_l2::{PoissonL2, PoissonL2Config};
 

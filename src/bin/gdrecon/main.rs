@@ -20,7 +20,7 @@ use std::time::Instant;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 
-use gdrecon::recon::{PoissonL1Config, PoissonL2Config};
+use gdrecon::recon::{FilterConfig, FilterGuide, PoissonL1Config, PoissonL2Config};
 use gdrecon::{
     io, metrics, synth, Context, ContextOptions, Frame, Layer, Method, MethodConfig, Plan, Policy,
 };
@@ -76,6 +76,14 @@ enum Command {
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
+enum GuideArg {
+    /// RDFC's first pass (the authors' release).
+    Rdfc,
+    /// Screened Poisson L1.
+    L1,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
 enum L1Preset {
     /// Preconditioned CG with early stopping (the default).
     Fast,
@@ -86,7 +94,7 @@ enum L1Preset {
 /// Method selection and settings shared by `reconstruct` and `bench`.
 #[derive(Args, Clone, Debug)]
 pub(crate) struct MethodArgs {
-    /// Reconstruction method: l2 or l1.
+    /// Reconstruction method: l2, l1 or filter (the filter needs spp: from the file or --spp).
     #[arg(long, short, default_value = "l2")]
     method: String,
     /// Screened Poisson data weight (residual alpha (I - I_b)).
@@ -104,6 +112,12 @@ pub(crate) struct MethodArgs {
     /// L1: relative CG tolerance, 0 runs every iteration (overrides the preset).
     #[arg(long)]
     cg_tolerance: Option<f32>,
+    /// filter: the pre-denoised guide image.
+    #[arg(long, value_enum, default_value = "rdfc")]
+    filter_guide: GuideArg,
+    /// filter: window radius (3 or 4).
+    #[arg(long, default_value_t = 4)]
+    filter_radius: usize,
 }
 
 impl MethodArgs {
@@ -122,6 +136,14 @@ impl MethodArgs {
                 c.cg_tolerance = self.cg_tolerance.unwrap_or(c.cg_tolerance);
                 MethodConfig::PoissonL1(c)
             }
+            Method::Filter => MethodConfig::Filter(FilterConfig {
+                radius: self.filter_radius,
+                guide: match self.filter_guide {
+                    GuideArg::Rdfc => FilterGuide::Rdfc,
+                    GuideArg::L1 => FilterGuide::PoissonL1,
+                },
+                ..FilterConfig::default()
+            }),
             other => MethodConfig::default_for(other).with_alpha(self.alpha),
         })
     }

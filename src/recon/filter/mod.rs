@@ -8,12 +8,26 @@ pub(crate) mod qp;
 pub(crate) mod rdfc;
 pub(crate) mod util;
 
-use super::{Method, Reconstructor};
+use super::{Method, PoissonL1, PoissonL1Config, Reconstructor};
 use crate::error::{Error, Result};
 use crate::frame::Frame;
+use crate::frame::{FrameBuilder, Layer};
 use crate::image::Image;
 use crate::progress::Progress;
 use crate::report::Report;
+use crate::validate::Policy;
+
+/// Which pre-denoised image guides the filter (its `L_d` term and the start of the
+/// gradient enhancement).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FilterGuide {
+    /// RDFC's first pass, as the authors' release does (the reference mode).
+    Rdfc,
+    /// Our screened Poisson L1 reconstruction: cheaper and, on the bundled sample, a better
+    /// guide (relMSE 8.6e-4 vs 1.4e-3), which the filter's output follows closely at low spp
+    /// since the guide term's weight is `8 / sqrt(spp)`.
+    PoissonL1,
+}
 
 /// Settings of the filter method.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -24,6 +38,8 @@ pub struct FilterConfig {
     pub levels: usize,
     /// Gradient-enhancement iterations of the reference schedule. Default 1000.
     pub enhance_iterations: u32,
+    /// The pre-denoiser. Default [`FilterGuide::Rdfc`], the release's.
+    pub guide: FilterGuide,
 }
 
 impl Default for FilterConfig {
@@ -32,6 +48,7 @@ impl Default for FilterConfig {
             radius: 4,
             levels: 1,
             enhance_iterations: 1000,
+            guide: FilterGuide::Rdfc,
         }
     }
 }
@@ -139,6 +156,8 @@ impl Reconstructor for Filter {
         }
         let colour = &scaled(frame.color(), scale);
         let (mut dx, mut dy) = (scaled(frame.dx(), scale), scaled(frame.dy(), scale));
+        // The Poisson guide sees the gradients as given (before outlier removal).
+        let (frame_dx_scaled, frame_dy_scaled) = (dx.clone(), dy.clone());
         let var_in = frame.variance().map(|v| scaled(v, scale * scale));
         let var = match var_in.as_ref() {
             // Renderers estimate the variance of the mean from few passes (ours: 4), so the
@@ -163,7 +182,22 @@ impl Reconstructor for Filter {
         }
         report.skip("feature prefilter (bundles carry no feature variance)");
         progress.update(0.05)?;
-        let guide = report.time("rdfc", || rdfc::rdfc(colour, &var, albedo, normal));
+        let guide = match self.cfg.guide {
+            FilterGuide::Rdfc => report.time("rdfc", || rdfc::rdfc(colour, &var, albedo, normal)),
+            FilterGuide::PoissonL1 => report.time("l1 guide", || {
+                let clean = FrameBuilder::new()
+                    .image(Layer::Color, colour.clone())
+                    .image(Layer::Dx, frame_dx_scaled.clone())
+                    .image(Layer::Dy, frame_dy_scaled.clone())
+                    .build(Policy::Replace)?;
+                let (w, h) = colour.size();
+                let mut l1 = PoissonL1::new(PoissonL1Config::default(), w, h)?;
+                let mut out = Image::zeros(3, h, w);
+                let mut sub = Report::default();
+                l1.reconstruct_into(&clean, &mut out, &mut sub, &Progress::none())?;
+                Ok::<_, Error>(out)
+            })?,
+        };
         progress.update(0.4)?;
         let lambda = 8.0 / spp.sqrt();
         let weights = enhance::EnhanceWeights::new(&dx, &dy, albedo, normal, lambda);
