@@ -203,9 +203,14 @@ fn published_preset_runs_its_fixed_schedule() {
 #[test]
 fn results_are_bit_identical_for_any_thread_count() {
     let frame = gdrecon::synth::synthetic_frame(97, 61, 8.0, 4);
+    let small = gdrecon::recon::FilterConfig {
+        enhance_iterations: 50,
+        ..Default::default()
+    };
     for config in [
         MethodConfig::PoissonL2(PoissonL2Config::default()),
         MethodConfig::PoissonL1(PoissonL1Config::default()),
+        MethodConfig::Filter(small),
     ] {
         let run = |threads| {
             let ctx = Context::new(ContextOptions {

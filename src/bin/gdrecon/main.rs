@@ -118,6 +118,9 @@ pub(crate) struct MethodArgs {
     /// filter: window radius (3 or 4).
     #[arg(long, default_value_t = 4)]
     filter_radius: usize,
+    /// filter: resolution levels (1 to 4).
+    #[arg(long, default_value_t = FilterConfig::default().levels)]
+    filter_levels: usize,
 }
 
 impl MethodArgs {
@@ -138,6 +141,7 @@ impl MethodArgs {
             }
             Method::Filter => MethodConfig::Filter(FilterConfig {
                 radius: self.filter_radius,
+                levels: self.filter_levels,
                 guide: match self.filter_guide {
                     GuideArg::Rdfc => FilterGuide::Rdfc,
                     GuideArg::L1 => FilterGuide::PoissonL1,

@@ -1,0 +1,354 @@
+//! Guided linear upsampling (GLU, Song et al. 2023) for 2x levels, as the FRGR release uses it.
+//!
+//! Downsampling starts from the 2 x 2 box average of the guide `J` (the pre-denoised colour
+//! plus 0.1 x albedo and 0.1 x normal: 9 channels, 3 without features). Every fine pixel is then
+//! fitted as `w J_c[a] + (1 - w) J_c[b]` with the best pair `(a, b)` among the 3 x 3 coarse
+//! neighbours of its parent (36 pairs, `w` in [0, 1], least squares over the channels). Blocks
+//! holding a pixel whose fit error exceeds 0.15 (raw HDR units) are point-sampled instead: the
+//! coarse value becomes that block's highest-error fine pixel. (The release groups such pixels
+//! into 8-connected clusters first; the blocks they touch are the same.) All pixels are then
+//! refitted once.
+//!
+//! Every other buffer is downsampled the same way (box: mean, variance of the mean / 16; point:
+//! the chosen pixel), and gradients as the mean, over the pairs of source and target samples,
+//! of the fine differences summed along a path between them, so exact gradients stay exact.
+//! Upsampling is `w D[a] + (1 - w) D[b]`, a variance `w^2 V[a] + (1 - w)^2 V[b]`.
+//!
+//! Sizes must be even: [`pad_even`] extends by reflect-101 and the caller crops afterwards.
+
+use rayon::prelude::*;
+
+use super::util::reflect;
+use crate::image::Image;
+
+/// Fit error beyond which a block is point-sampled.
+const ERROR_THRESHOLD: f32 = 0.15;
+
+/// How each coarse pixel was made: the mean of its 2 x 2 block or one fine pixel of it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Sample {
+    Box,
+    /// Offset `(i, j)` of the chosen fine pixel inside the block.
+    Point(u8, u8),
+}
+
+/// The result of fitting a fine level to a coarse one.
+pub(crate) struct Glu {
+    /// Fine size.
+    pub fine: (usize, usize),
+    /// Coarse size (half).
+    pub coarse: (usize, usize),
+    /// Per coarse pixel, how it was sampled.
+    pub samples: Vec<Sample>,
+    /// Per fine pixel: coarse indices `a`, `b` and weight `w` of `a`.
+    pub fit: Vec<(u32, u32, f32)>,
+}
+
+/// Pads to even width and height by reflect-101 (a no-op for even sizes).
+pub(crate) fn pad_even(img: &Image) -> Image {
+    let (w, h) = img.size();
+    let (pw, ph) = (w + w % 2, h + h % 2);
+    if (pw, ph) == (w, h) {
+        return img.clone();
+    }
+    Image::from_fn(img.channels(), ph, pw, |(c, y, x)| {
+        img.at(c, reflect(x as isize, w), reflect(y as isize, h))
+    })
+}
+
+/// Crops to `w` x `h` (the top-left corner).
+pub(crate) fn crop(img: &Image, w: usize, h: usize) -> Image {
+    Image::from_fn(img.channels(), h, w, |(c, y, x)| img.at(c, x, y))
+}
+
+impl Glu {
+    /// Fits the 2x level structure to the guide `j` (even size).
+    pub fn new(j: &Image) -> Self {
+        let (w, h) = j.size();
+        assert!(
+            w % 2 == 0 && h % 2 == 0,
+            "GLU needs even sizes, got {w} x {h}"
+        );
+        let (cw, ch) = (w / 2, h / 2);
+        let mut glu = Glu {
+            fine: (w, h),
+            coarse: (cw, ch),
+            samples: vec![Sample::Box; cw * ch],
+            fit: Vec::new(),
+        };
+        let coarse = glu.downsample(j, false);
+        let errors = glu.refit(j, &coarse);
+        let mut changed = false;
+        for by in 0..ch {
+            for bx in 0..cw {
+                let mut worst = (ERROR_THRESHOLD, None);
+                for jj in 0..2 {
+                    for ii in 0..2 {
+                        let e = errors[(2 * by + jj) * w + 2 * bx + ii];
+                        if e > worst.0 {
+                            worst = (e, Some((ii as u8, jj as u8)));
+                        }
+                    }
+                }
+                if let (_, Some((ii, jj))) = worst {
+                    glu.samples[by * cw + bx] = Sample::Point(ii, jj);
+                    changed = true;
+                }
+            }
+        }
+        if changed {
+            let coarse = glu.downsample(j, false);
+            glu.refit(j, &coarse);
+        }
+        glu
+    }
+
+    /// Fits every fine pixel to the coarse guide; returns the fit errors.
+    fn refit(&mut self, j: &Image, coarse: &Image) -> Vec<f32> {
+        let (w, h) = self.fine;
+        let (cw, ch) = self.coarse;
+        let nc = j.channels();
+        let (fs, cs) = (j.as_slice(), coarse.as_slice());
+        let (n, cn) = (w * h, cw * ch);
+        let results: Vec<((u32, u32, f32), f32)> = (0..n)
+            .into_par_iter()
+            .map(|p| {
+                let (x, y) = (p % w, p / w);
+                let (px, py) = ((x / 2) as isize, (y / 2) as isize);
+                let mut cand = [0usize; 9];
+                let mut k = 0;
+                for dy in -1..=1 {
+                    for dx in -1..=1 {
+                        cand[k] = reflect(py + dy, ch) * cw + reflect(px + dx, cw);
+                        k += 1;
+                    }
+                }
+                let target: [f32; 9] =
+                    std::array::from_fn(|c| if c < nc { fs[c * n + p] } else { 0.0 });
+                let at = |q: usize, c: usize| cs[c * cn + q];
+                let mut best = ((cand[4] as u32, cand[4] as u32, 1.0f32), f32::INFINITY);
+                for ia in 0..9 {
+                    for ib in ia..9 {
+                        let (a, b) = (cand[ia], cand[ib]);
+                        let (mut num, mut den) = (0.0f32, 0.0f32);
+                        for (c, &t) in target[..nc].iter().enumerate() {
+                            let d = at(a, c) - at(b, c);
+                            num += (t - at(b, c)) * d;
+                            den += d * d;
+                        }
+                        let wgt = if den > 0.0 {
+                            (num / den).clamp(0.0, 1.0)
+                        } else {
+                            1.0
+                        };
+                        let mut err = 0.0;
+                        for (c, &t) in target[..nc].iter().enumerate() {
+                            let e = t - (wgt * at(a, c) + (1.0 - wgt) * at(b, c));
+                            err += e * e;
+                        }
+                        if err < best.1 {
+                            best = ((a as u32, b as u32, wgt), err);
+                        }
+                    }
+                }
+                (best.0, best.1.sqrt())
+            })
+            .collect();
+        self.fit = results.iter().map(|r| r.0).collect();
+        results.iter().map(|r| r.1).collect()
+    }
+
+    /// Downsamples a buffer (any channel count, fine size): block mean or chosen pixel; a
+    /// variance (`variance = true`) of a box block is the variance of the mean, sum / 16.
+    pub fn downsample(&self, img: &Image, variance: bool) -> Image {
+        let (cw, ch) = self.coarse;
+        Image::from_fn(img.channels(), ch, cw, |(c, y, x)| {
+            match self.samples[y * cw + x] {
+                Sample::Box => {
+                    let s = img.at(c, 2 * x, 2 * y)
+                        + img.at(c, 2 * x + 1, 2 * y)
+                        + img.at(c, 2 * x, 2 * y + 1)
+                        + img.at(c, 2 * x + 1, 2 * y + 1);
+                    if variance {
+                        s / 16.0
+                    } else {
+                        s / 4.0
+                    }
+                }
+                Sample::Point(i, j) => img.at(c, 2 * x + i as usize, 2 * y + j as usize),
+            }
+        })
+    }
+
+    /// The fine pixels a coarse pixel stands for.
+    fn members(&self, x: usize, y: usize) -> Vec<(usize, usize)> {
+        match self.samples[y * self.coarse.0 + x] {
+            Sample::Box => vec![
+                (2 * x, 2 * y),
+                (2 * x + 1, 2 * y),
+                (2 * x, 2 * y + 1),
+                (2 * x + 1, 2 * y + 1),
+            ],
+            Sample::Point(i, j) => vec![(2 * x + i as usize, 2 * y + j as usize)],
+        }
+    }
+
+    /// Downsamples gradients: each coarse difference is the mean, over source and target
+    /// samples, of the fine differences summed along a path (horizontal, then vertical).
+    pub fn downsample_gradients(&self, dx: &Image, dy: &Image) -> (Image, Image) {
+        let (cw, ch) = self.coarse;
+        let path = |c: usize, (sx, sy): (usize, usize), (tx, ty): (usize, usize)| -> f32 {
+            let mut s = 0.0;
+            let (x0, x1) = (sx.min(tx), sx.max(tx));
+            let sign = if tx >= sx { 1.0 } else { -1.0 };
+            for x in x0..x1 {
+                s += sign * dx.at(c, x, sy);
+            }
+            let (y0, y1) = (sy.min(ty), sy.max(ty));
+            let sign = if ty >= sy { 1.0 } else { -1.0 };
+            for y in y0..y1 {
+                s += sign * dy.at(c, tx, y);
+            }
+            s
+        };
+        let edge = |c: usize, a: (usize, usize), b: (usize, usize)| -> f32 {
+            let (ma, mb) = (self.members(a.0, a.1), self.members(b.0, b.1));
+            let mut s = 0.0;
+            for &p in &ma {
+                for &q in &mb {
+                    s += path(c, p, q);
+                }
+            }
+            s / (ma.len() * mb.len()) as f32
+        };
+        let cdx = Image::from_fn(3, ch, cw, |(c, y, x)| {
+            if x + 1 < cw {
+                edge(c, (x, y), (x + 1, y))
+            } else {
+                0.0
+            }
+        });
+        let cdy = Image::from_fn(3, ch, cw, |(c, y, x)| {
+            if y + 1 < ch {
+                edge(c, (x, y), (x, y + 1))
+            } else {
+                0.0
+            }
+        });
+        (cdx, cdy)
+    }
+
+    /// Upsamples a coarse image (and optionally its variance) with the fitted weights.
+    pub fn upsample(&self, img: &Image, variance: Option<&Image>) -> (Image, Option<Image>) {
+        let (w, h) = self.fine;
+        let (cw, ch) = self.coarse;
+        let cn = cw * ch;
+        let s = img.as_slice();
+        let up = Image::from_fn(img.channels(), h, w, |(c, y, x)| {
+            let (a, b, wt) = self.fit[y * w + x];
+            wt * s[c * cn + a as usize] + (1.0 - wt) * s[c * cn + b as usize]
+        });
+        let var = variance.map(|v| {
+            let vs = v.as_slice();
+            Image::from_fn(v.channels(), h, w, |(c, y, x)| {
+                let (a, b, wt) = self.fit[y * w + x];
+                wt * wt * vs[c * cn + a as usize]
+                    + (1.0 - wt) * (1.0 - wt) * vs[c * cn + b as usize]
+            })
+        });
+        (up, var)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn exact_gradients(img: &Image) -> (Image, Image) {
+        let (w, h) = img.size();
+        (
+            Image::from_fn(3, h, w, |(c, y, x)| {
+                if x + 1 < w {
+                    img.at(c, x + 1, y) - img.at(c, x, y)
+                } else {
+                    0.0
+                }
+            }),
+            Image::from_fn(3, h, w, |(c, y, x)| {
+                if y + 1 < h {
+                    img.at(c, x, y + 1) - img.at(c, x, y)
+                } else {
+                    0.0
+                }
+            }),
+        )
+    }
+
+    #[test]
+    fn piecewise_constant_guide_is_reconstructed_exactly() {
+        // A guide that is constant on every 2 x 2 block: downsampling loses nothing and each
+        // fine pixel is fitted by its own parent with weight 1.
+        let (w, h) = (12, 8);
+        let j = Image::from_fn(9, h, w, |(c, y, x)| {
+            ((x / 2) * 7 + (y / 2) * 3 + c) as f32 * 0.1
+        });
+        let glu = Glu::new(&j);
+        assert!(glu.samples.iter().all(|s| *s == Sample::Box));
+        let coarse = glu.downsample(&j, false);
+        let (up, _) = glu.upsample(&coarse, None);
+        let d = up
+            .as_slice()
+            .iter()
+            .zip(j.as_slice())
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f32::max);
+        assert!(d < 1e-5, "{d}");
+    }
+
+    #[test]
+    fn exact_gradients_downsample_to_the_exact_gradients_of_the_downsampled_image() {
+        let (w, h) = (10, 8);
+        let img = Image::from_fn(3, h, w, |(c, y, x)| {
+            ((x * x + 3 * y + c) % 11) as f32 * 0.3 + if x > 5 { 2.0 } else { 0.0 }
+        });
+        let mut guide = img.clone();
+        // Make a few blocks point-sampled: huge values in single pixels.
+        guide.planes_mut()[[0, 3, 4]] += 50.0;
+        let glu = Glu::new(&pad_even(&guide));
+        assert!(glu.samples.iter().any(|s| matches!(s, Sample::Point(..))));
+        let (dx, dy) = exact_gradients(&img);
+        let coarse = glu.downsample(&img, false);
+        let (cdx, cdy) = glu.downsample_gradients(&dx, &dy);
+        let (edx, edy) = exact_gradients(&coarse);
+        for (a, b) in [(&cdx, &edx), (&cdy, &edy)] {
+            let d = a
+                .as_slice()
+                .iter()
+                .zip(b.as_slice())
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0, f32::max);
+            assert!(d < 1e-4, "{d}");
+        }
+    }
+
+    #[test]
+    fn upsampled_variance_uses_squared_weights() {
+        let j = Image::from_fn(3, 4, 4, |(c, y, x)| (x + 2 * y + c) as f32);
+        let glu = Glu::new(&j);
+        let v = Image::from_fn(3, 2, 2, |_| 1.0);
+        let (_, var) = glu.upsample(&v, Some(&v));
+        for (p, &(_, _, wt)) in glu.fit.iter().enumerate() {
+            let expect = wt * wt + (1.0 - wt) * (1.0 - wt);
+            assert!((var.as_ref().unwrap().as_slice()[p] - expect).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn odd_sizes_pad_and_crop_back() {
+        let img = Image::from_fn(3, 5, 7, |(c, y, x)| (x + 10 * y + c) as f32);
+        let p = pad_even(&img);
+        assert_eq!(p.size(), (8, 6));
+        assert_eq!(crop(&p, 7, 5), img);
+        assert_eq!(p.at(0, 7, 0), img.at(0, 5, 0));
+    }
+}
