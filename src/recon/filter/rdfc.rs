@@ -137,6 +137,7 @@ pub(crate) fn nlm_candidates(
     let mut den = vec![0.0f32; m * n];
     let mut maxw = vec![0.0f32; m * n];
     let mut delta = vec![0.0f32; n];
+    let mut weights = vec![0.0f32; m * n];
     let mut dfeat = vec![0.0f32; n];
     let mut patched = vec![vec![0.0f32; n]; 4];
     let mut tmp = Vec::new();
@@ -146,58 +147,51 @@ pub(crate) fn nlm_candidates(
             if ox == 0 && oy == 0 {
                 continue;
             }
-            let q_of = |i: usize| {
-                let (x, y) = ((i % w) as isize, (i / w) as isize);
-                reflect(y + oy, h) * w + reflect(x + ox, w)
-            };
-            delta.par_iter_mut().enumerate().for_each(|(i, out)| {
-                let q = q_of(i);
-                let mut acc = 0.0;
-                for ch in 0..3 {
-                    let (vp, vq) = (v[ch * n + i], v[ch * n + q]);
-                    let diff = c[ch * n + i] - c[ch * n + q];
-                    acc += (diff * diff - (vp + vp.min(vq))) / (1e-10 + vp + vq);
-                }
-                *out = acc / 3.0;
-            });
-            dfeat.par_iter_mut().enumerate().for_each(|(i, out)| {
-                let q = q_of(i);
-                let mut worst = 0.0f32;
-                for f in features {
-                    let (fs, ch) = (f.img.as_slice(), f.img.channels());
+            // Column map of this offset, computed once: the inner loops have no division.
+            let qx: Vec<usize> = (0..w).map(|x| reflect(x as isize + ox, w)).collect();
+            let qx = &qx;
+            delta.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                let (o, qo) = (y * w, reflect(y as isize + oy, h) * w);
+                for (x, out) in row.iter_mut().enumerate() {
+                    let (i, q) = (o + x, qo + qx[x]);
                     let mut acc = 0.0;
-                    for k in 0..ch {
-                        let diff = fs[k * n + i] - fs[k * n + q];
-                        acc += diff * diff;
+                    for ch in 0..3 {
+                        let (vp, vq) = (v[ch * n + i], v[ch * n + q]);
+                        let diff = c[ch * n + i] - c[ch * n + q];
+                        acc += (diff * diff - (vp + vp.min(vq))) / (1e-10 + vp + vq);
                     }
-                    worst = worst.max(acc / ch as f32 / f.norm[i]);
+                    *out = acc / 3.0;
                 }
-                *out = worst;
+            });
+            dfeat.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                let (o, qo) = (y * w, reflect(y as isize + oy, h) * w);
+                for (x, out) in row.iter_mut().enumerate() {
+                    let (i, q) = (o + x, qo + qx[x]);
+                    let mut worst = 0.0f32;
+                    for f in features {
+                        let (fs, ch) = (f.img.as_slice(), f.img.channels());
+                        let mut acc = 0.0;
+                        for k in 0..ch {
+                            let diff = fs[k * n + i] - fs[k * n + q];
+                            acc += diff * diff;
+                        }
+                        worst = worst.max(acc / ch as f32 / f.norm[i]);
+                    }
+                    *out = worst;
+                }
             });
             for (k, cand) in candidates.iter().enumerate() {
                 if cand.kc.is_some() {
                     box_mean(&delta, w, h, cand.patch, &mut tmp, &mut patched[k]);
                 }
             }
-            let patched = &patched;
-            let (delta, dfeat) = (&delta, &dfeat);
-            let _ = delta;
-            num.par_chunks_mut(n).enumerate().for_each(|(kc_idx, acc)| {
-                let (k, ch) = (kc_idx / dch, kc_idx % dch);
-                let cand = candidates[k];
-                for (i, a) in acc.iter_mut().enumerate() {
-                    let dist = match cand.kc {
-                        Some(kc) => (patched[k][i] / (kc * kc)).max(dfeat[i]),
-                        None => dfeat[i],
-                    };
-                    let wgt = (-dist.max(0.0)).exp();
-                    *a += wgt * d[ch * n + q_of(i)];
-                }
-            });
-            den.par_chunks_mut(n)
-                .zip(maxw.par_chunks_mut(n))
+            // One weight image per candidate (one exp per pixel), then accumulate.
+            let (patched, dfeat) = (&patched, &dfeat);
+            weights
+                .par_chunks_mut(n)
+                .zip(den.par_chunks_mut(n).zip(maxw.par_chunks_mut(n)))
                 .enumerate()
-                .for_each(|(k, (dn, mx))| {
+                .for_each(|(k, (wk, (dn, mx)))| {
                     let cand = candidates[k];
                     for i in 0..n {
                         let dist = match cand.kc {
@@ -205,10 +199,23 @@ pub(crate) fn nlm_candidates(
                             None => dfeat[i],
                         };
                         let wgt = (-dist.max(0.0)).exp();
+                        wk[i] = wgt;
                         dn[i] += wgt;
                         mx[i] = mx[i].max(wgt);
                     }
                 });
+            let weights = &weights;
+            num.par_chunks_mut(n).enumerate().for_each(|(kc_idx, acc)| {
+                let (k, ch) = (kc_idx / dch, kc_idx % dch);
+                let wk = &weights[k * n..(k + 1) * n];
+                for (y, row) in acc.chunks_mut(w).enumerate() {
+                    let qy = reflect(y as isize + oy, h) * w;
+                    let src = &d[ch * n + qy..ch * n + qy + w];
+                    for (x, a) in row.iter_mut().enumerate() {
+                        *a += wk[y * w + x] * src[qx[x]];
+                    }
+                }
+            });
         }
     }
     (0..m)
