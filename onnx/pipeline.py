@@ -3,7 +3,8 @@ against these functions). The ONNX graph contains only the network; everything h
 
 Steps, for one frame (arrays H x W x C, float32, linear radiance):
  1. sanitise: NaN/Inf -> 0 in every layer, negative colour -> 0 (gradients stay signed).
- 2. feature normalisation (per frame): clamp features to [-1e5, 1e5]; albedo as is;
+ 2. feature normalisation (per frame): clamp features to [-1e5, 1e5]; albedo clamped to [0, 1]
+    (deviation from the release, see `normalize_features`);
     normal -> normal * 0.5 + 0.5; depth -> (depth - min) / (max - min) (0 if max == min).
  3. mu-law (mu = 16): data channel C(I_c), gradient channels S(dx_c), S(dy_c).
  4. pad bottom/right to multiples of 8 (`pad_frame`): colour and features with reflect
@@ -68,9 +69,19 @@ def has_features(frame):
     return all(frame.get(k) is not None for k in ("albedo", "normal", "depth"))
 
 
-def normalize_features(albedo, normal, depth):
-    """-> H x W x 7 float32: albedo (3), normal*0.5+0.5 (3), depth min-max normalised (1)."""
-    a = np.clip(albedo, -FEAT_CLAMP, FEAT_CLAMP).astype(np.float32)
+ALBEDO_RANGE = (0.0, 1.0)
+TRAIN_ALBEDO_RANGE = (-FEAT_CLAMP, FEAT_CLAMP)   # what onnx/train.py used (the release's clamp)
+
+
+def normalize_features(albedo, normal, depth, albedo_range=ALBEDO_RANGE):
+    """-> H x W x 7 float32: albedo (3) clamped to `albedo_range`, normal*0.5+0.5 (3), depth
+    min-max normalised (1); all clamped to [-1e5, 1e5] first (the release).
+    Inference clamps albedo to [0, 1]: Mitsuba's aov albedo of rough / anisotropic conductors
+    reaches 204 in our training set (0.4 % of its pixels > 1) and 551 on the `metals` validation
+    frame, far outside what the network learnt, and the release's clamp at 1e5 let the output
+    explode there (metals relMSE 5.4 / 8.1 / 1.7 at 4 / 16 / 64 spp, 0.026 / 0.011 / 0.0060
+    with the [0, 1] clamp; frames whose albedo is within [0, 1] are unchanged)."""
+    a = np.clip(np.clip(albedo, -FEAT_CLAMP, FEAT_CLAMP), *albedo_range).astype(np.float32)
     n = np.clip(normal, -FEAT_CLAMP, FEAT_CLAMP).astype(np.float32) * 0.5 + 0.5
     d = np.clip(depth, -FEAT_CLAMP, FEAT_CLAMP).astype(np.float32)
     if d.ndim == 2:

@@ -15,7 +15,8 @@ only, without G-branch.
 
 Data: every bundle in --data (default $HOME/.cache/gdrecon/data/train: 192 noisy 256x256
 frames, 4 and 16 spp, 6 scenes x 16 perturbations) is sanitised and its features normalised per
-frame (onnx/pipeline.py), then cached as one .npy in --cache. A step draws --batch random
+frame (onnx/pipeline.py; albedo clamped at +-1e5 as in the release, while inference clamps it
+to [0, 1], see pipeline.normalize_features), then cached as one .npy in --cache. A step draws --batch random
 frames and one random --patch x --patch crop from each (seeded, uniform); each crop's R, G, B
 become 3 items of the network batch (batch of 3 x --batch items).
 
@@ -82,7 +83,7 @@ def load_set(data_dir, cache_dir):
     arrs = []
     for f in files:
         fr = pl.sanitize(pl.read_frame(f))
-        feat = pl.normalize_features(fr["albedo"], fr["normal"], fr["depth"])
+        feat = pl.normalize_features(fr["albedo"], fr["normal"], fr["depth"], pl.TRAIN_ALBEDO_RANGE)
         a = np.concatenate([fr["color"], fr["dx"], fr["dy"], feat], -1).transpose(2, 0, 1)
         arrs.append(np.ascontiguousarray(a, np.float32))
     arr = np.stack(arrs)
