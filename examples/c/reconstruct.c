@@ -6,6 +6,7 @@
  * filter without copies, and the filter is committed once and executed per method. */
 #include <stdio.h>
 #include <stdlib.h>
+#include <string.h>
 
 #include "gdrecon.h"
 
@@ -74,7 +75,9 @@ int main(int argc, char** argv) {
             if (data) TRY(gdr_filter_set_image_planar(filter, layers[i], data, width, height, channels, 0, 0));
         }
         TRY(gdr_filter_set_image(filter, "output", out, width, height, 3, 0, 0));
-        TRY(gdr_filter_set_float(filter, "alpha", 0.2f));
+        /* alpha is the screened Poisson weight: only the Poisson methods have it. */
+        if (strcmp(method, "l2") == 0 || strcmp(method, "l1") == 0)
+            TRY(gdr_filter_set_float(filter, "alpha", 0.2f));
         TRY(gdr_filter_set_float(filter, "spp", spp));
         TRY(gdr_filter_set_progress_callback(filter, on_progress, NULL));
         TRY(gdr_filter_commit(filter));
