@@ -1,0 +1,274 @@
+"""Tests of the GradNet model, losses, pre/post-processing and ONNX export (onnx/gradnet.py,
+onnx/pipeline.py, onnx/export.py, the committed onnx/*.onnx). Small sizes: a few seconds on 2 cores.
+
+    ~/.cache/gdrecon/venv/bin/python -m pytest -q onnx/tests/test_gradnet.py
+"""
+import json
+import math
+import os
+import sys
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+onnx = pytest.importorskip("onnx")
+ort = pytest.importorskip("onnxruntime")
+
+ONNX_DIR = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+REPO = os.path.dirname(ONNX_DIR)
+sys.path.insert(0, ONNX_DIR)
+
+import export as ex  # noqa: E402
+import gradnet as gn  # noqa: E402
+import pipeline as pl  # noqa: E402
+
+SAMPLE = os.path.join(REPO, "examples", "data", "sample.exr")
+VAL = os.path.expanduser("~/.cache/gdrecon/data/val")
+SIZES = [(8, 8), (16, 24), (40, 16)]   # (H, W): multiples of 8, square and not
+TOL = 1e-4
+
+torch.set_num_threads(2)
+
+
+def _sess(path):
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 2
+    return ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+
+
+# ---------------------------------------------------------------- mu-law
+
+def test_mulaw_roundtrip():
+    x = np.concatenate([np.linspace(0, 1, 101), np.logspace(-6, 4, 50)]).astype(np.float64)
+    assert np.allclose(gn.mulaw_inv(gn.mulaw(x)), x, rtol=1e-9, atol=1e-12)
+    t = torch.tensor(x)
+    assert torch.allclose(gn.mulaw_inv(gn.mulaw(t)), t, rtol=1e-9, atol=1e-12)
+    assert abs(float(gn.mulaw(1.0)) - 1.0) < 1e-12 and float(gn.mulaw(0.0)) == 0.0
+    s = np.array([-3.0, -0.5, 0.0, 0.25, 2.0])
+    assert np.allclose(gn.mulaw_signed(s), np.sign(s) * np.log1p(16 * np.abs(s)) / np.log(17))
+    # numpy pipeline versions agree with the torch ones
+    assert np.allclose(pl.C_inv(pl.C(x.astype(np.float32))), x.astype(np.float32), rtol=1e-5, atol=1e-6)
+    assert np.allclose(pl.S(s.astype(np.float32)), gn.mulaw_signed(torch.tensor(s)).numpy(), atol=1e-6)
+
+
+# ---------------------------------------------------------------- losses by hand
+
+def _C(v):
+    return math.log(1 + 16 * v) / math.log(17)
+
+
+def _S(v):
+    return math.copysign(_C(abs(v)), v) if v != 0 else 0.0
+
+
+def _Cinv(v):
+    return (17 ** v - 1) / 16
+
+
+Y = [[0.2, 0.5, 0.1], [0.4, 0.3, 0.7]]          # 1 x 1 x 2 x 3, compressed output
+I = [[0.1, 0.6, 0.0], [0.3, 0.2, 1.5]]          # linear noisy colour
+DX = [[0.5, -0.4, 0.0], [-0.1, 0.9, 0.0]]
+DY = [[0.2, -0.3, 0.7], [0.0, 0.0, 0.0]]
+
+
+def _t(a):
+    return torch.tensor(a, dtype=torch.float64)[None, None]
+
+
+def test_loss_data_by_hand():
+    want = sum(abs(Y[r][c] - _C(I[r][c])) for r in range(2) for c in range(3)) / 6
+    assert abs(gn.loss_data(_t(Y), _t(I)).item() - want) < 1e-12
+
+
+def test_loss_grad_by_hand():
+    lx = [abs(_S(_Cinv(Y[r][c + 1]) - _Cinv(Y[r][c])) - _S(DX[r][c])) for r in range(2) for c in range(2)]
+    ly = [abs(_S(_Cinv(Y[1][c]) - _Cinv(Y[0][c])) - _S(DY[0][c])) for c in range(3)]
+    want = sum(lx) / len(lx) + sum(ly) / len(ly)
+    assert abs(gn.loss_grad(_t(Y), _t(DX), _t(DY)).item() - want) < 1e-12
+
+
+def test_loss_first_order_by_hand():
+    rng = np.random.default_rng(3)
+    Fe = rng.random((7, 2, 3))
+    G = rng.standard_normal((7, 2, 3))
+
+    def term(p, q):
+        dF = Fe[:, q[0], q[1]] - Fe[:, p[0], p[1]]
+        w = math.exp(-9 * (I[q[0]][q[1]] - I[p[0]][p[1]]) ** 2)
+        dy = Y[q[0]][q[1]] - Y[p[0]][p[1]]
+        fwd = w * abs(dy - float(G[:, p[0], p[1]] @ dF))
+        bwd = w * abs(-dy - float(G[:, q[0], q[1]] @ (-dF)))
+        return fwd, bwd
+
+    h = [term((r, c), (r, c + 1)) for r in range(2) for c in range(2)]
+    v = [term((0, c), (1, c)) for c in range(3)]
+    want = (sum(a for a, _ in h) + sum(b for _, b in h)) / len(h) + \
+           (sum(a for a, _ in v) + sum(b for _, b in v)) / len(v)
+    got = gn.loss_first_order(_t(Y), torch.tensor(Fe)[None], torch.tensor(G)[None], _t(I)).item()
+    assert abs(got - want) < 1e-12
+
+
+def test_first_order_zero_for_linear_model():
+    # y exactly linear in the features with slope G -> loss 0
+    rng = np.random.default_rng(0)
+    Fe = torch.tensor(rng.random((1, 7, 5, 6)))
+    g = torch.tensor(rng.standard_normal(7)).view(1, 7, 1, 1)
+    y = (Fe * g).sum(1, keepdim=True)
+    G = g.expand(1, 7, 5, 6)
+    assert gn.loss_first_order(y, Fe, G, torch.rand(1, 1, 5, 6, dtype=torch.float64)).item() < 1e-12
+
+
+# ---------------------------------------------------------------- architecture
+
+def test_architecture():
+    net = gn.GradNet()
+    assert 6.28e6 < gn.n_params(net) < 6.30e6
+    y = net(torch.rand(2, 8, 16, 24), torch.rand(2, 2, 16, 24))
+    assert y.shape == (2, 1, 16, 24) and (y >= 0).all()
+    nf = gn.GradNetNoFeat()
+    assert nf(torch.rand(3, 1, 8, 8), torch.rand(3, 2, 8, 8)).shape == (3, 1, 8, 8)
+    assert gn.GBranch()(torch.rand(1, 8, 8, 8), torch.rand(1, 2, 8, 8)).shape == (1, 7, 8, 8)
+
+
+def test_make_inputs_channel_batch():
+    c = torch.rand(2, 3, 8, 8)
+    dx, dy, f = torch.randn(2, 3, 8, 8), torch.randn(2, 3, 8, 8), torch.rand(2, 7, 8, 8)
+    d, g = gn.make_inputs(c, dx, dy, f)
+    assert d.shape == (6, 8, 8, 8) and g.shape == (6, 2, 8, 8)
+    assert torch.allclose(d[4, 0], gn.mulaw(c[1, 1])) and torch.equal(d[4, 1:], f[1])
+    assert torch.allclose(g[5, 1], gn.mulaw_signed(dy[1, 2]))
+
+
+# ---------------------------------------------------------------- pre/post-processing
+
+def test_padding_consistent_with_reflected_colour():
+    rng = np.random.default_rng(1)
+    H, W = 13, 10
+    img = rng.random((H, W, 3)).astype(np.float32)
+    dx = np.zeros_like(img); dx[:, :-1] = img[:, 1:] - img[:, :-1]
+    dy = np.zeros_like(img); dy[:-1] = img[1:] - img[:-1]
+    ph, pw = 3, 6
+    P = pl.pad_reflect(img, ph, pw)
+    pdx, pdy = pl.pad_grad(dx, ph, pw, 1), pl.pad_grad(dy, ph, pw, 0)
+    assert pdx.shape == P.shape == pdy.shape == (16, 16, 3)
+    assert np.allclose(pdx[:, :-1], P[:, 1:] - P[:, :-1], atol=1e-6)
+    assert np.allclose(pdy[:-1], P[1:] - P[:-1], atol=1e-6)
+    assert np.array_equal(pl.pad_grad(dx, 0, 0, 1), dx)
+
+
+def test_feature_normalisation():
+    a = np.full((2, 2, 3), 0.5, np.float32)
+    n = np.array([[[-1, 0, 1]] * 2] * 2, np.float32)
+    d = np.array([[[2.0], [4.0]], [[np.float32(3e5)], [2.0]]], np.float32)
+    f = pl.normalize_features(a, n, d)
+    assert f.shape == (2, 2, 7)
+    assert np.allclose(f[0, 0, 3:6], [0, 0.5, 1])
+    assert np.isclose(f[..., 6].max(), 1) and np.isclose(f[..., 6].min(), 0)
+    assert np.isclose(f[0, 1, 6], 2.0 / (1e5 - 2))   # clamped at 1e5 before min-max
+    a2 = a.copy(); a2[0, 0] = [551.0, -0.5, 0.3]
+    assert np.allclose(pl.normalize_features(a2, n, d)[0, 0, :3], [1.0, 0.0, 0.3])   # inference: [0, 1]
+    assert np.allclose(pl.normalize_features(a2, n, d, pl.TRAIN_ALBEDO_RANGE)[0, 0, :3], [551.0, -0.5, 0.3])
+
+
+def test_bias_correction():
+    rng = np.random.default_rng(2)
+    col = rng.random((20, 30, 3)).astype(np.float32)
+    assert np.allclose(pl.bias_correct(col, col), col, rtol=1e-6)
+    out = pl.bias_correct(0.5 * col, col)      # a global scale is undone exactly
+    assert np.allclose(out, col, rtol=1e-5)
+    k = pl.gaussian_kernel()
+    assert len(k) == 91 and abs(k.sum() - 1) < 1e-12
+    # zero-padded borders: a constant image blurs to less than itself at the edges
+    b = pl.blur2d(np.ones((10, 10)))
+    assert b[0, 0] < b[5, 5] < 1.0
+
+
+# ---------------------------------------------------------------- ONNX parity
+
+def _parity(net, path, sizes, seed=0):
+    sess = _sess(path)
+    rng = np.random.default_rng(seed)
+    worst = 0.0
+    for (h, w) in sizes:
+        d = rng.random((3, net.data_ch, h, w), dtype=np.float32)
+        g = rng.random((3, 2, h, w), dtype=np.float32) - 0.5
+        with torch.no_grad():
+            ref = net(torch.from_numpy(d), torch.from_numpy(g)).numpy()
+        got = sess.run(["output"], {"data": d, "grad": g})[0]
+        assert got.shape == (3, 1, h, w)
+        worst = max(worst, float(np.abs(ref - got).max()))
+    return worst
+
+
+@pytest.mark.parametrize("data_ch", [8, 1])
+def test_export_untrained_parity(tmp_path, data_ch):
+    torch.manual_seed(0)
+    net = gn.GradNet(data_ch=data_ch).eval()
+    path = str(tmp_path / "m.onnx")
+    m = ex.export_model(net, path)
+    assert m.ir_version <= 10 and m.opset_import[0].version == 17
+    assert [i.name for i in m.graph.input] == ["data", "grad"]
+    assert [o.name for o in m.graph.output] == ["output"]
+    assert _parity(net, path, SIZES) < TOL
+    # weights round-trip through the file's initializers
+    back = ex.net_from_onnx(path)
+    for k, v in net.state_dict().items():
+        assert torch.equal(v, back.state_dict()[k])
+
+
+SHIPPED = [f for f in ("gradnet.onnx", "gradnet_nofeat.onnx") if os.path.exists(os.path.join(ONNX_DIR, f))]
+
+
+def test_shipped_models_present():
+    assert "gradnet.onnx" in SHIPPED, "onnx/gradnet.onnx (trained) must be committed"
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_model_hash_and_parity(name):
+    path = os.path.join(ONNX_DIR, name)
+    digest = ex.sha256_file(path)
+    with open(path + ".sha256") as f:
+        assert f.read().split()[0] == digest
+    with open(os.path.join(ONNX_DIR, "models.json")) as f:
+        man = json.load(f)["models"][name]
+    assert man["sha256"] == digest and man["epochs_trained"] >= 1
+    m = onnx.load(path)
+    assert m.ir_version <= 10 and os.path.getsize(path) < 32e6
+    net = ex.net_from_onnx(path)
+    assert _parity(net, path, [(8, 16), (24, 24)], seed=1) < TOL
+
+
+def _frame_parity(frame, name):
+    path = os.path.join(ONNX_DIR, name)
+    net = ex.net_from_onnx(path)
+    use_feat = net.data_ch == 8
+    a = pl.reconstruct(frame, pl.torch_runner(net), use_features=use_feat, correct_bias=False)
+    b = pl.reconstruct(frame, pl.ort_runner(path), use_features=use_feat, correct_bias=False)
+    # compare in the network's (compressed) domain, where the 1e-4 bound applies
+    err = float(np.abs(pl.C(a) - pl.C(b)).max())
+    assert np.isfinite(a).all() and err < TOL, err
+    return a
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_model_on_sample_frame(name):
+    if not os.path.exists(SAMPLE):
+        pytest.skip("examples/data/sample.exr missing")
+    fr = pl.read_frame(SAMPLE)
+    H, W = fr["color"].shape[:2]
+    out = _frame_parity(fr, name)
+    assert out.shape == (H, W, 3)
+    if "reference" in fr and name == "gradnet.onnx":
+        # a trained model must improve on the noisy input of the bundled sample
+        full = pl.reconstruct(fr, pl.ort_runner(os.path.join(ONNX_DIR, name)))
+        assert pl.relmse(full, fr["reference"]) < pl.relmse(fr["color"], fr["reference"])
+
+
+def test_validation_frame_parity():
+    f = os.path.join(VAL, "textures_4spp.exr")
+    if not os.path.exists(f):
+        pytest.skip(f"validation set absent ({VAL})")
+    if "gradnet.onnx" not in SHIPPED:
+        pytest.skip("no shipped model")
+    _frame_parity(pl.read_frame(f), "gradnet.onnx")
