@@ -146,6 +146,28 @@ impl Image {
             .collect()
     }
 
+    /// The forward differences `(dx, dy)` of the frame convention:
+    /// `dx(x, y) = I(x+1, y) - I(x, y)`, `dy(x, y) = I(x, y+1) - I(x, y)`, 0 in the last column
+    /// of `dx` and the last row of `dy`. Exact gradients, e.g. for tests and synthetic frames.
+    pub fn forward_differences(&self) -> (Image, Image) {
+        let (w, h, ch) = (self.width(), self.height(), self.channels());
+        let dx = Image::from_fn(ch, h, w, |(c, y, x)| {
+            if x + 1 < w {
+                self.at(c, x + 1, y) - self.at(c, x, y)
+            } else {
+                0.0
+            }
+        });
+        let dy = Image::from_fn(ch, h, w, |(c, y, x)| {
+            if y + 1 < h {
+                self.at(c, x, y + 1) - self.at(c, x, y)
+            } else {
+                0.0
+            }
+        });
+        (dx, dy)
+    }
+
     /// True when every sample is finite.
     pub fn all_finite(&self) -> bool {
         self.as_slice().iter().all(|v| v.is_finite())

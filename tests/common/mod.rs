@@ -208,24 +208,8 @@ pub fn test_image(w: usize, h: usize) -> Image {
 
 /// Exact forward differences of `img` (0 in the last column / row).
 pub fn exact_gradients(img: &Image) -> (Image, Image) {
-    let (w, h) = img.size();
-    let dx = Image::from_fn(3, h, w, |(c, y, x)| {
-        if x + 1 < w {
-            img.at(c, x + 1, y) - img.at(c, x, y)
-        } else {
-            0.0
-        }
-    });
-    let dy = Image::from_fn(3, h, w, |(c, y, x)| {
-        if y + 1 < h {
-            img.at(c, x, y + 1) - img.at(c, x, y)
-        } else {
-            0.0
-        }
-    });
-    (dx, dy)
+    img.forward_differences()
 }
-
 /// A frame from planar images.
 pub fn frame(color: Image, dx: Image, dy: Image) -> Frame {
     FrameBuilder::new()

@@ -221,30 +221,11 @@ mod tests {
         })
     }
 
-    fn diffs(img: &Image) -> (Image, Image) {
-        let (w, h) = img.size();
-        let dx = Image::from_fn(3, h, w, |(c, y, x)| {
-            if x + 1 < w {
-                img.at(c, x + 1, y) - img.at(c, x, y)
-            } else {
-                0.0
-            }
-        });
-        let dy = Image::from_fn(3, h, w, |(c, y, x)| {
-            if y + 1 < h {
-                img.at(c, x, y + 1) - img.at(c, x, y)
-            } else {
-                0.0
-            }
-        });
-        (dx, dy)
-    }
-
     #[test]
     fn loss_and_descent_agree_with_a_finite_difference_of_the_energy() {
         let (w, h) = (6, 5);
         let img = Image::from_fn(3, h, w, |(c, y, x)| ((x * 7 + y * 3 + c) % 5) as f32 * 0.1);
-        let (dx, dy) = diffs(&ramp(w, h));
+        let (dx, dy) = ramp(w, h).forward_differences();
         let alb = Image::from_fn(
             3,
             h,
@@ -282,7 +263,7 @@ mod tests {
     #[test]
     fn valid_gradients_of_the_start_are_a_fixed_point() {
         let img = ramp(8, 6);
-        let (dx, dy) = diffs(&img);
+        let (dx, dy) = img.forward_differences();
         let wt = EnhanceWeights::new(&dx, &dy, None, None, 0.0);
         let (out, outcome) = enhance_reference(&img, &dx, &dy, &wt, 100);
         assert!(outcome.loss_end < 1e-6, "{outcome:?}");
@@ -312,7 +293,7 @@ mod tests {
     #[test]
     fn descent_lowers_the_energy_from_a_noisy_start() {
         let clean = ramp(16, 12);
-        let (dx, dy) = diffs(&clean);
+        let (dx, dy) = clean.forward_differences();
         let noisy = Image::from_fn(3, 12, 16, |(c, y, x)| {
             clean.at(c, x, y) + if (x + y) % 2 == 0 { 0.05 } else { -0.05 }
         });

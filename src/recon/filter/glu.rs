@@ -264,26 +264,6 @@ impl Glu {
 mod tests {
     use super::*;
 
-    fn exact_gradients(img: &Image) -> (Image, Image) {
-        let (w, h) = img.size();
-        (
-            Image::from_fn(3, h, w, |(c, y, x)| {
-                if x + 1 < w {
-                    img.at(c, x + 1, y) - img.at(c, x, y)
-                } else {
-                    0.0
-                }
-            }),
-            Image::from_fn(3, h, w, |(c, y, x)| {
-                if y + 1 < h {
-                    img.at(c, x, y + 1) - img.at(c, x, y)
-                } else {
-                    0.0
-                }
-            }),
-        )
-    }
-
     #[test]
     fn piecewise_constant_guide_is_reconstructed_exactly() {
         // A guide that is constant on every 2 x 2 block: downsampling loses nothing and each
@@ -316,10 +296,10 @@ mod tests {
         guide.planes_mut()[[0, 3, 4]] += 50.0;
         let glu = Glu::new(&pad_even(&guide));
         assert!(glu.samples.iter().any(|s| matches!(s, Sample::Point(..))));
-        let (dx, dy) = exact_gradients(&img);
+        let (dx, dy) = img.forward_differences();
         let coarse = glu.downsample(&img, false);
         let (cdx, cdy) = glu.downsample_gradients(&dx, &dy);
-        let (edx, edy) = exact_gradients(&coarse);
+        let (edx, edy) = coarse.forward_differences();
         for (a, b) in [(&cdx, &edx), (&cdy, &edy)] {
             let d = a
                 .as_slice()
