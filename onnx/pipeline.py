@@ -183,10 +183,14 @@ def bias_correct(out, color_in):
 def reconstruct(frame, run, use_features=None, correct_bias=True):
     """Full reference pipeline. `run(data, grad) -> N x 1 x Hp x Wp` (numpy in/out; a torch
     model or an onnxruntime session wrapped, see `torch_runner` / `ort_runner`).
-    use_features=None: use them when the frame has them. Returns H x W x 3 float32."""
+    use_features=None: follow the model (runner's `data_channels`: 8 -> features, 1 -> none),
+    else use them when the frame has them. Returns H x W x 3 float32."""
     fr = sanitize(frame)
     if use_features is None:
-        use_features = has_features(fr)
+        dch = getattr(run, "data_channels", None)
+        use_features = has_features(fr) if dch is None else dch == 8
+        if use_features and not has_features(fr):
+            raise ValueError("the model needs albedo, normal and depth; use the no-feature model")
     data, grad, (H, W) = prepare_inputs(fr, use_features)
     y = np.asarray(run(data, grad), np.float32)[:, 0, :H, :W]     # 3 x H x W
     out = np.maximum(C_inv(y), 0.0).transpose(1, 2, 0)
@@ -202,6 +206,7 @@ def torch_runner(model):
     def run(data, grad):
         with torch.no_grad():
             return model(torch.from_numpy(data), torch.from_numpy(grad)).numpy()
+    run.data_channels = model.data_ch
     return run
 
 
@@ -215,6 +220,8 @@ def ort_runner(path_or_session):
 
     def run(data, grad):
         return sess.run(["output"], {"data": data, "grad": grad})[0]
+    shape = sess.get_inputs()[0].shape
+    run.data_channels = shape[1] if isinstance(shape[1], int) else None
     return run
 
 
