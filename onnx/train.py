@@ -28,8 +28,9 @@ Deviations from the release, and why (2-core CPU, about 40 minutes of training i
     and compress each epoch, so lambda_F reaches 0.11 at epoch 6 and 0.26 in the last epoch
     (the release's 11-epoch checkpoint saw up to 0.16).
   * Patches 96x96 and batch 6 crops (= 18 channel items) instead of 256x256 / 32: measured
-    per-step time on this machine is in docs/gradnet.md; 96 is a multiple of 8 and still
-    covers the 8x downsampled bottleneck (12x12) with the receptive field of the decoder.
+    here, one main step takes 0.7 s on an idle machine and 3-7 s while other builds run
+    (128x128 x 4 crops: 3.2 s under load), an epoch 72-334 s (docs/gradnet.md); 96 is a
+    multiple of 8 and leaves a 12x12 bottleneck.
   * Learning rate 4e-4 instead of 1e-4. Measured (same seed, hence the same batches; 4 epochs
     x 10 steps, lambda_F = 0, no G steps; mean losses of epochs 0..3):
         lr 1e-4: L_grad 0.1276 0.0946 0.0911 0.0772, L_data 0.1919 0.1811 0.1824 0.1792
