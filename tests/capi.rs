@@ -641,6 +641,45 @@ struct CancelState {
     reentrant: Option<gdr_error>,
 }
 
+/// Packed colour/dx/dy buffers of a frame and an output buffer, for the 720p l1 runs.
+fn l1_720p_buffers(frame: &Frame) -> (Vec<Vec<f32>>, Vec<f32>) {
+    let bufs = INPUTS[..3].iter().map(|&l| interleaved(frame, l)).collect();
+    (bufs, vec![0f32; frame.width() * frame.height() * 3])
+}
+
+/// Sets the packed colour/dx/dy views and the output, then commits.
+unsafe fn set_views_and_commit(
+    f: *mut gdr_filter,
+    bufs: &[Vec<f32>],
+    out: &mut [f32],
+    w: usize,
+    h: usize,
+) {
+    for (l, b) in INPUTS[..3].iter().zip(bufs) {
+        ok(gdr_filter_set_image(
+            f,
+            cs(l.name()).as_ptr(),
+            b.as_ptr(),
+            w,
+            h,
+            3,
+            0,
+            0,
+        ));
+    }
+    ok(gdr_filter_set_image(
+        f,
+        c"output".as_ptr(),
+        out.as_mut_ptr(),
+        w,
+        h,
+        3,
+        0,
+        0,
+    ));
+    ok(gdr_filter_commit(f));
+}
+
 unsafe extern "C" fn cancel_on_second_call(user: *mut c_void, _fraction: f64) -> bool {
     let s = &mut *user.cast::<CancelState>();
     s.calls += 1;
@@ -657,11 +696,7 @@ unsafe extern "C" fn cancel_on_second_call(user: *mut c_void, _fraction: f64) ->
 fn cancellation_returns_promptly_on_720p() {
     let (w, h) = (1280, 720);
     let frame = synth::synthetic_frame(w, h, 4.0, 3);
-    let bufs: Vec<Vec<f32>> = INPUTS[..3]
-        .iter()
-        .map(|&l| interleaved(&frame, l))
-        .collect();
-    let mut out = vec![0f32; w * h * 3];
+    let (bufs, mut out) = l1_720p_buffers(&frame);
     let ctx = context();
     let f = filter(ctx, "l1");
     let mut state = CancelState {
@@ -671,29 +706,7 @@ fn cancellation_returns_promptly_on_720p() {
         reentrant: None,
     };
     unsafe {
-        for (l, b) in INPUTS[..3].iter().zip(&bufs) {
-            ok(gdr_filter_set_image(
-                f,
-                cs(l.name()).as_ptr(),
-                b.as_ptr(),
-                w,
-                h,
-                3,
-                0,
-                0,
-            ));
-        }
-        ok(gdr_filter_set_image(
-            f,
-            c"output".as_ptr(),
-            out.as_mut_ptr(),
-            w,
-            h,
-            3,
-            0,
-            0,
-        ));
-        ok(gdr_filter_commit(f));
+        set_views_and_commit(f, &bufs, &mut out, w, h);
         ok(gdr_filter_set_progress_callback(
             f,
             Some(cancel_on_second_call),
@@ -739,11 +752,7 @@ unsafe extern "C" fn record_gaps(user: *mut c_void, _fraction: f64) -> bool {
 fn cancel_from_another_thread_on_720p() {
     let (w, h) = (1280, 720);
     let frame = synth::synthetic_frame(w, h, 4.0, 5);
-    let bufs: Vec<Vec<f32>> = INPUTS[..3]
-        .iter()
-        .map(|&l| interleaved(&frame, l))
-        .collect();
-    let mut out = vec![0f32; w * h * 3];
+    let (bufs, mut out) = l1_720p_buffers(&frame);
     let ctx = context();
     let f = filter(ctx, "l1");
     let mut gaps = Gaps {
@@ -752,29 +761,7 @@ fn cancel_from_another_thread_on_720p() {
         calls: 0,
     };
     unsafe {
-        for (l, b) in INPUTS[..3].iter().zip(&bufs) {
-            ok(gdr_filter_set_image(
-                f,
-                cs(l.name()).as_ptr(),
-                b.as_ptr(),
-                w,
-                h,
-                3,
-                0,
-                0,
-            ));
-        }
-        ok(gdr_filter_set_image(
-            f,
-            c"output".as_ptr(),
-            out.as_mut_ptr(),
-            w,
-            h,
-            3,
-            0,
-            0,
-        ));
-        ok(gdr_filter_commit(f));
+        set_views_and_commit(f, &bufs, &mut out, w, h);
         ok(gdr_filter_set_progress_callback(
             f,
             Some(record_gaps),
