@@ -35,15 +35,6 @@ impl<'a> Progress<'a> {
             _ => Ok(()),
         }
     }
-
-    /// A sink that maps `[0, 1]` of a sub-task onto `[start, start + span]` of this one.
-    pub fn scoped<'b>(&'b self, start: f64, span: f64) -> ScopedProgress<'b, 'a> {
-        ScopedProgress {
-            parent: self,
-            start,
-            span,
-        }
-    }
 }
 
 impl std::fmt::Debug for Progress<'_> {
@@ -51,21 +42,5 @@ impl std::fmt::Debug for Progress<'_> {
         f.debug_struct("Progress")
             .field("callback", &self.callback.is_some())
             .finish()
-    }
-}
-
-/// A sub-range of a [`Progress`].
-#[derive(Clone, Copy, Debug)]
-pub struct ScopedProgress<'b, 'a> {
-    parent: &'b Progress<'a>,
-    start: f64,
-    span: f64,
-}
-
-impl ScopedProgress<'_, '_> {
-    /// Reports `fraction` of the sub-task done.
-    pub fn update(&self, fraction: f64) -> Result<()> {
-        self.parent
-            .update(self.start + self.span * fraction.clamp(0.0, 1.0))
     }
 }

@@ -74,6 +74,18 @@ fn write_custom(
     image.write().to_file(path).unwrap();
 }
 
+/// Writes an uncompressed file whose named channels are all zero.
+fn write_zeros(
+    path: &std::path::Path,
+    size: (usize, usize),
+    names: &[&str],
+    spp: Option<AttributeValue>,
+) {
+    let zeros = || FlatSamples::F32(vec![0.0; size.0 * size.1]);
+    let channels = names.iter().map(|n| (*n, zeros())).collect();
+    write_custom(path, size, channels, x::Encoding::UNCOMPRESSED, spp);
+}
+
 fn plane(w: usize, h: usize, f: impl Fn(usize) -> f32) -> Vec<f32> {
     (0..w * h).map(f).collect()
 }
@@ -135,17 +147,10 @@ fn accepts_f16_tiles_piz_lowercase_components_aliases_and_ignores_unknown_layers
 fn spp_attribute_that_is_not_positive_is_reported_as_unknown() {
     let dir = tmp();
     let path = dir.path().join("spp0.exr");
-    let zeros = || FlatSamples::F32(vec![0.0; 4]);
     let ch = [
         "color.R", "color.G", "color.B", "dx.R", "dx.G", "dx.B", "dy.R", "dy.G", "dy.B",
     ];
-    write_custom(
-        &path,
-        (2, 2),
-        ch.iter().map(|n| (*n, zeros())).collect(),
-        x::Encoding::UNCOMPRESSED,
-        Some(AttributeValue::F32(0.0)),
-    );
+    write_zeros(&path, (2, 2), &ch, Some(AttributeValue::F32(0.0)));
     let raw = io::read_bundle_raw(&path).unwrap();
     assert_eq!(raw.spp, None);
     assert!(raw.warnings[0].contains("spp = 0"), "{:?}", raw.warnings);
@@ -196,15 +201,8 @@ fn truncated_file_is_an_error_not_a_panic() {
 fn missing_required_layer_in_a_file_names_file_and_layer() {
     let dir = tmp();
     let path = dir.path().join("nody.exr");
-    let zeros = || FlatSamples::F32(vec![0.0; 6]);
     let ch = ["color.R", "color.G", "color.B", "dx.R", "dx.G", "dx.B"];
-    write_custom(
-        &path,
-        (3, 2),
-        ch.iter().map(|n| (*n, zeros())).collect(),
-        x::Encoding::UNCOMPRESSED,
-        None,
-    );
+    write_zeros(&path, (3, 2), &ch, None);
     let e = io::read_bundle(&path, Policy::Replace).unwrap_err();
     let s = e.to_string();
     assert!(
@@ -220,17 +218,10 @@ fn missing_required_layer_in_a_file_names_file_and_layer() {
 fn incomplete_layer_names_the_missing_channels() {
     let dir = tmp();
     let path = dir.path().join("partial.exr");
-    let zeros = || FlatSamples::F32(vec![0.0; 6]);
     let ch = [
         "color.R", "color.G", "dx.R", "dx.G", "dx.B", "dy.R", "dy.G", "dy.B",
     ];
-    write_custom(
-        &path,
-        (3, 2),
-        ch.iter().map(|n| (*n, zeros())).collect(),
-        x::Encoding::UNCOMPRESSED,
-        None,
-    );
+    write_zeros(&path, (3, 2), &ch, None);
     let m = exr_message(io::read_bundle(&path, Policy::Replace).unwrap_err());
     assert!(
         m.contains("'color' needs channels color.R, color.G, color.B"),

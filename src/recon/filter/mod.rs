@@ -90,10 +90,10 @@ pub struct Filter {
 }
 
 impl Filter {
-    /// Plans the filter for `width` x `height` frames.
-    pub fn new(config: FilterConfig, width: usize, height: usize) -> Result<Self> {
+    /// Plans the filter for `width` x `height` frames (the size is not used yet: every
+    /// buffer is still allocated per execution).
+    pub fn new(config: FilterConfig, _width: usize, _height: usize) -> Result<Self> {
         config.validate()?;
-        let _ = (width, height);
         Ok(Filter { cfg: config })
     }
 }
