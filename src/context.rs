@@ -5,7 +5,8 @@
 //! count so a renderer can leave cores to its own pool. Results do not depend on the thread
 //! count: every parallel reduction in gdrecon has a fixed order.
 
-use std::sync::Arc;
+use std::any::Any;
+use std::sync::{Arc, Mutex};
 
 use crate::error::{Error, Result};
 
@@ -20,6 +21,21 @@ pub struct ContextOptions {
 #[derive(Clone, Debug)]
 pub struct Context {
     pool: Arc<rayon::ThreadPool>,
+    shared: Arc<Shared>,
+}
+
+/// Objects that plans of one context share (loaded models), by key. Type-erased so that the
+/// core does not know what a method keeps here.
+#[derive(Default)]
+struct Shared(Mutex<Vec<(String, Arc<dyn Any + Send + Sync>)>>);
+
+impl std::fmt::Debug for Shared {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let items = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        f.debug_list()
+            .entries(items.iter().map(|(k, _)| k))
+            .finish()
+    }
 }
 
 impl Context {
@@ -42,12 +58,32 @@ impl Context {
             .map_err(|e| Error::Unsupported(format!("cannot start {threads} threads: {e}")))?;
         Ok(Context {
             pool: Arc::new(pool),
+            shared: Arc::default(),
         })
     }
 
     /// Number of worker threads.
     pub fn threads(&self) -> usize {
         self.pool.current_num_threads()
+    }
+
+    /// The object stored under `key`, made by `make` on first request and shared by every
+    /// plan of this context (and its clones) afterwards. A failed `make` stores nothing.
+    pub(crate) fn shared<T: Any + Send + Sync>(
+        &self,
+        key: &str,
+        make: impl FnOnce() -> Result<T>,
+    ) -> Result<Arc<T>> {
+        let mut items = self.shared.0.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some((_, item)) = items.iter().find(|(k, _)| k == key) {
+            if let Ok(item) = item.clone().downcast::<T>() {
+                return Ok(item);
+            }
+        }
+        let item = Arc::new(make()?);
+        items.retain(|(k, _)| k != key);
+        items.push((key.to_owned(), item.clone()));
+        Ok(item)
     }
 
     /// Runs `f` on this context's pool.

@@ -41,6 +41,15 @@ pub enum Error {
         message: String,
     },
 
+    /// A GradNet model is missing its recorded hash, has another one, or is rejected by ONNX
+    /// Runtime.
+    #[error("GradNet model: {0}")]
+    Model(String),
+
+    /// ONNX Runtime failed while configuring a session or running the network.
+    #[error("ONNX Runtime: {0}")]
+    Runtime(String),
+
     /// The caller's progress callback asked to stop.
     #[error("cancelled by the caller")]
     Cancelled,

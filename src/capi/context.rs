@@ -44,6 +44,12 @@ impl gdr_context {
         }
     }
 
+    /// The GradNet paths set on the context: `(onnxruntime_path, model_path)`.
+    pub(crate) fn gradnet_paths(&self) -> (Option<String>, Option<String>) {
+        let s = self.settings();
+        (s.onnxruntime_path.clone(), s.model_path.clone())
+    }
+
     /// Sends `message` to the log callback if `level` is enabled.
     pub(crate) fn log(&self, level: gdr_log_level, message: &str) {
         if level as u32 > self.log_level.load(Ordering::Relaxed) {

@@ -91,6 +91,13 @@ fn params(method: Method) -> &'static [(&'static str, Kind)] {
             ("spp", Float),
             ("strict", Bool),
         ],
+        Method::GradNet => &[
+            ("tile_size", Int),
+            ("bias_correction", Bool),
+            ("use_features", Bool),
+            ("spp", Float),
+            ("strict", Bool),
+        ],
         #[allow(unreachable_patterns)]
         _ => &[("spp", Float), ("strict", Bool)],
     }
@@ -156,6 +163,9 @@ impl State {
             ("cg_iterations", M::PoissonL1(c), V::Int(i)) => c.cg_iterations = to_u32(name, i)?,
             ("cg_tolerance", M::PoissonL1(c), V::Float(t)) => c.cg_tolerance = t,
             ("preconditioned", M::PoissonL1(c), V::Bool(b)) => c.preconditioned = b,
+            ("tile_size", M::GradNet(c), V::Int(i)) => c.tile_size = to_u32(name, i)? as usize,
+            ("bias_correction", M::GradNet(c), V::Bool(b)) => c.bias_correction = b,
+            ("use_features", M::GradNet(c), V::Bool(b)) => c.use_features = b,
             _ => {
                 return err(
                     GDR_ERROR_UNKNOWN,
@@ -184,6 +194,11 @@ impl State {
             }
             ("cg_tolerance", M::PoissonL1(c)) => Value::Float(c.cg_tolerance),
             ("preconditioned", M::PoissonL1(c)) => Value::Bool(c.preconditioned),
+            ("tile_size", M::GradNet(c)) => {
+                Value::Int(i32::try_from(c.tile_size).unwrap_or(i32::MAX))
+            }
+            ("bias_correction", M::GradNet(c)) => Value::Bool(c.bias_correction),
+            ("use_features", M::GradNet(c)) => Value::Bool(c.use_features),
             _ => {
                 return err(
                     GDR_ERROR_UNKNOWN,
@@ -244,13 +259,13 @@ impl State {
             );
         }
         let mut note = String::new();
-        if self.planned != Some((self.config, w, h)) {
+        if self.planned.as_ref() != Some(&(self.config.clone(), w, h)) {
             self.plan = None;
             self.planned = None;
             self.out = Image::zeros(3, 0, 0);
             self.plan = Some(Plan::new(pool, &self.config, w, h)?);
             self.out = Image::zeros(3, h, w);
-            self.planned = Some((self.config, w, h));
+            self.planned = Some((self.config.clone(), w, h));
             note = format!("planned method {} for {w} x {h}", self.config.method());
         }
         self.dirty = false;
@@ -298,7 +313,7 @@ fn lock(f: &gdr_filter) -> CResult<MutexGuard<'_, State>> {
     }
 }
 
-/// Create a filter running `method` (`"l2"`, `"l1"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
+/// Create a filter running `method` (`"l2"`, `"l1"`, `"filter"`, `"gradnet"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_new(
     ctx: *mut gdr_context,
@@ -311,12 +326,18 @@ pub unsafe extern "C" fn gdr_filter_new(
         let context = context_arc(ctx)?;
         let method: Method = c_str(method, "method")?.parse()?;
         let pool = context.pool()?;
+        let mut config = MethodConfig::default_for(method);
+        if let MethodConfig::GradNet(c) = &mut config {
+            let (runtime, model) = context.gradnet_paths();
+            c.runtime = runtime.map(Into::into);
+            c.model = model.map(Into::into);
+        }
         let filter = gdr_filter {
             context,
             pool,
             cancel: AtomicBool::new(false),
             state: Mutex::new(State {
-                config: MethodConfig::default_for(method),
+                config,
                 strict: false,
                 spp: 0.0,
                 inputs: BTreeMap::new(),

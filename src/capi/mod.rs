@@ -91,6 +91,11 @@ pub enum gdr_error {
     GDR_ERROR_INVALID_IMAGE = 10,
     /// The output view shares memory with an input view without being the same view.
     GDR_ERROR_OVERLAP = 11,
+    /// The GradNet model file is damaged, not the exported one (SHA-256 mismatch) or rejected
+    /// by ONNX Runtime.
+    GDR_ERROR_INVALID_MODEL = 12,
+    /// ONNX Runtime failed while configuring a session or running the network.
+    GDR_ERROR_RUNTIME = 13,
 }
 
 use gdr_error::*;
@@ -148,6 +153,8 @@ impl From<Error> for CapiError {
             Error::Unsupported(_) => GDR_ERROR_UNSUPPORTED,
             Error::Io { .. } | Error::Exr { .. } => GDR_ERROR_IO,
             Error::Cancelled => GDR_ERROR_CANCELLED,
+            Error::Model(_) => GDR_ERROR_INVALID_MODEL,
+            Error::Runtime(_) => GDR_ERROR_RUNTIME,
             #[allow(unreachable_patterns)]
             _ => GDR_ERROR_UNKNOWN,
         };
@@ -265,6 +272,8 @@ pub extern "C" fn gdr_error_name(code: u32) -> *const c_char {
         9 => c"GDR_ERROR_NULL_POINTER",
         10 => c"GDR_ERROR_INVALID_IMAGE",
         11 => c"GDR_ERROR_OVERLAP",
+        12 => c"GDR_ERROR_INVALID_MODEL",
+        13 => c"GDR_ERROR_RUNTIME",
         _ => c"GDR_ERROR_?",
     };
     name.as_ptr()

@@ -9,6 +9,7 @@
 
 mod dct;
 pub mod filter;
+pub mod gradnet;
 mod ops;
 pub mod poisson_l1;
 pub mod poisson_l2;
@@ -19,6 +20,9 @@ use std::str::FromStr;
 use rayon::prelude::*;
 
 pub use filter::{Filter, FilterConfig, FilterGuide};
+#[cfg(feature = "gradnet")]
+pub use gradnet::GradNet;
+pub use gradnet::GradNetConfig;
 pub use poisson_l1::{PoissonL1, PoissonL1Config};
 pub use poisson_l2::{PoissonL2, PoissonL2Config};
 
@@ -53,13 +57,21 @@ pub enum Method {
     PoissonL2,
     /// Screened Poisson, group L1, by IRLS with preconditioned CG (`l1`).
     PoissonL1,
-    /// Gradient-guided filtering, FRGR (Yan et al. 2024) (`filter`); single level so far.
+    /// Gradient-guided filtering, FRGR (Yan et al. 2024) (`filter`).
     Filter,
+    /// GradNet (Guo et al. 2019) through ONNX Runtime (`gradnet`); needs the `gradnet` cargo
+    /// feature and the runtime library at run time.
+    GradNet,
 }
 
 impl Method {
     /// Every method, in the order the CLI lists them.
-    pub const ALL: [Method; 3] = [Method::PoissonL2, Method::PoissonL1, Method::Filter];
+    pub const ALL: [Method; 4] = [
+        Method::PoissonL2,
+        Method::PoissonL1,
+        Method::Filter,
+        Method::GradNet,
+    ];
 
     /// The CLI / C ABI name.
     pub fn name(self) -> &'static str {
@@ -67,6 +79,7 @@ impl Method {
             Method::PoissonL2 => "l2",
             Method::PoissonL1 => "l1",
             Method::Filter => "filter",
+            Method::GradNet => "gradnet",
         }
     }
 }
@@ -93,7 +106,7 @@ impl FromStr for Method {
 }
 
 /// A method with its settings.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 #[non_exhaustive]
 pub enum MethodConfig {
     /// See [`PoissonL2Config`].
@@ -102,6 +115,8 @@ pub enum MethodConfig {
     PoissonL1(PoissonL1Config),
     /// See [`FilterConfig`].
     Filter(FilterConfig),
+    /// See [`GradNetConfig`].
+    GradNet(GradNetConfig),
 }
 
 impl MethodConfig {
@@ -111,6 +126,7 @@ impl MethodConfig {
             Method::PoissonL2 => MethodConfig::PoissonL2(PoissonL2Config::default()),
             Method::PoissonL1 => MethodConfig::PoissonL1(PoissonL1Config::default()),
             Method::Filter => MethodConfig::Filter(FilterConfig::default()),
+            Method::GradNet => MethodConfig::GradNet(GradNetConfig::default()),
         }
     }
 
@@ -120,6 +136,7 @@ impl MethodConfig {
             MethodConfig::PoissonL2(_) => Method::PoissonL2,
             MethodConfig::PoissonL1(_) => Method::PoissonL1,
             MethodConfig::Filter(_) => Method::Filter,
+            MethodConfig::GradNet(_) => Method::GradNet,
         }
     }
 
@@ -128,16 +145,30 @@ impl MethodConfig {
         match &mut self {
             MethodConfig::PoissonL2(c) => c.alpha = alpha,
             MethodConfig::PoissonL1(c) => c.alpha = alpha,
-            MethodConfig::Filter(_) => {}
+            MethodConfig::Filter(_) | MethodConfig::GradNet(_) => {}
         }
         self
     }
 
-    fn instantiate(&self, width: usize, height: usize) -> Result<Box<dyn Reconstructor>> {
-        Ok(match *self {
-            MethodConfig::PoissonL2(c) => Box::new(PoissonL2::new(c, width, height)?),
-            MethodConfig::PoissonL1(c) => Box::new(PoissonL1::new(c, width, height)?),
-            MethodConfig::Filter(c) => Box::new(Filter::new(c, width, height)?),
+    fn instantiate(
+        &self,
+        context: &Context,
+        width: usize,
+        height: usize,
+    ) -> Result<Box<dyn Reconstructor>> {
+        Ok(match self {
+            MethodConfig::PoissonL2(c) => Box::new(PoissonL2::new(*c, width, height)?),
+            MethodConfig::PoissonL1(c) => Box::new(PoissonL1::new(*c, width, height)?),
+            MethodConfig::Filter(c) => Box::new(Filter::new(*c, width, height)?),
+            #[cfg(feature = "gradnet")]
+            MethodConfig::GradNet(c) => Box::new(GradNet::new(c.clone(), context, width, height)?),
+            #[cfg(not(feature = "gradnet"))]
+            MethodConfig::GradNet(_) => {
+                let _ = context;
+                return Err(Error::Unsupported(
+                    "this build of gdrecon has no GradNet (cargo feature `gradnet` is off)".into(),
+                ));
+            }
         })
     }
 }
@@ -163,7 +194,7 @@ impl Plan {
                 "plan size is {width} x {height}: an image needs at least one pixel"
             )));
         }
-        let inner = context.install(|| config.instantiate(width, height))?;
+        let inner = context.install(|| config.instantiate(context, width, height))?;
         Ok(Plan {
             context: context.clone(),
             inner,

@@ -11,6 +11,22 @@
 
 use rayon::prelude::*;
 
+/// Reflect-101 border rule (`dcb|abcd|cba`), the release's choice almost everywhere: index
+/// `i` (possibly outside `0..n`) mapped into `0..n`.
+#[inline]
+pub(crate) fn reflect(i: isize, n: usize) -> usize {
+    if n == 1 {
+        return 0;
+    }
+    let n = n as isize;
+    let period = 2 * (n - 1);
+    let mut i = i.rem_euclid(period);
+    if i >= n {
+        i = period - i;
+    }
+    i as usize
+}
+
 /// Plane dimensions.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) struct Dims {

@@ -99,8 +99,19 @@ counted test_c "$work/test_c" "$work/ref" "$sample"
 counted test_cpp "$work/test_cpp" "$work/ref" "$sample"
 counted test_static "$work/test_static" "$work/ref"
 
+step "GradNet with ONNX Runtime next to the library (discovery step 3)"
+ort_lib="${ORT_DYLIB_PATH:-}"
+if [ -n "$ort_lib" ] && [ -f "$ort_lib" ]; then
+    ln -sf "$ort_lib" "$prefix/lib/$(basename "$ort_lib")"
+    env -u ORT_DYLIB_PATH GDRECON_VENV="$work/no-venv" GDR_TEST_EXPECT_ORT_DIR="$prefix/lib" \
+        counted test_c_ort_beside "$work/test_c" "$work/ref" "$sample"
+    rm -f "$prefix/lib/$(basename "$ort_lib")"
+else
+    bad "ORT_DYLIB_PATH is not set: run bash onnx/setup.sh && source onnx/env.sh first"
+fi
+
 step "valgrind"
-GDR_TEST_NO_TIMING=1 counted valgrind valgrind -q --error-exitcode=1 --leak-check=full \
+GDR_TEST_NO_TIMING=1 GDR_TEST_NO_GRADNET=1 counted valgrind valgrind -q --error-exitcode=1 --leak-check=full \
     --errors-for-leak-kinds=definite,indirect --show-leak-kinds=definite,indirect \
     "$work/test_c" "$work/ref" "$sample"
 if grep -qE "definitely lost|indirectly lost|Invalid (read|write)|uninitialised" "$work/valgrind.log"; then

@@ -20,7 +20,7 @@ use std::time::Instant;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 
-use gdrecon::recon::{FilterConfig, FilterGuide, PoissonL1Config, PoissonL2Config};
+use gdrecon::recon::{FilterConfig, FilterGuide, GradNetConfig, PoissonL1Config, PoissonL2Config};
 use gdrecon::{
     io, metrics, synth, Context, ContextOptions, Frame, Layer, Method, MethodConfig, Plan, Policy,
 };
@@ -94,7 +94,8 @@ enum L1Preset {
 /// Method selection and settings shared by `reconstruct` and `bench`.
 #[derive(Args, Clone, Debug)]
 pub(crate) struct MethodArgs {
-    /// Reconstruction method: l2, l1 or filter (the filter needs spp: from the file or --spp).
+    /// Reconstruction method: l2, l1, filter or gradnet (the filter needs spp: from the file
+    /// or --spp; gradnet needs ONNX Runtime, see --onnxruntime).
     #[arg(long, short, default_value = "l2")]
     method: String,
     /// Screened Poisson data weight (residual alpha (I - I_b)).
@@ -121,6 +122,22 @@ pub(crate) struct MethodArgs {
     /// filter: resolution levels (1 to 4).
     #[arg(long, default_value_t = FilterConfig::default().levels)]
     filter_levels: usize,
+    /// gradnet: ONNX Runtime library to load first (then ORT_DYLIB_PATH, a library next to
+    /// gdrecon, the project's Python environment).
+    #[arg(long)]
+    onnxruntime: Option<PathBuf>,
+    /// gradnet: model file instead of the embedded models (checked against its .sha256).
+    #[arg(long)]
+    model: Option<PathBuf>,
+    /// gradnet: largest tile side in pixels, 0 = never tile.
+    #[arg(long, default_value_t = gdrecon::recon::gradnet::DEFAULT_TILE)]
+    tile: usize,
+    /// gradnet: skip the Gaussian bias correction.
+    #[arg(long)]
+    no_bias_correction: bool,
+    /// gradnet: ignore the frame's features (run the no-feature model).
+    #[arg(long)]
+    no_features: bool,
 }
 
 impl MethodArgs {
@@ -148,6 +165,15 @@ impl MethodArgs {
                 },
                 ..FilterConfig::default()
             }),
+            Method::GradNet => {
+                let mut c = GradNetConfig::default();
+                c.runtime = self.onnxruntime.clone();
+                c.model = self.model.clone();
+                c.tile_size = self.tile;
+                c.bias_correction = !self.no_bias_correction;
+                c.use_features = !self.no_features;
+                MethodConfig::GradNet(c)
+            }
             other => MethodConfig::default_for(other).with_alpha(self.alpha),
         })
     }

@@ -1,0 +1,87 @@
+"""Write the GradNet parity fixtures the Rust tests compare against (tests/fixtures/gradnet/).
+
+Everything comes from the torch reference model (the training checkpoints, not the ONNX
+export) and the numpy reference pipeline (onnx/pipeline.py):
+
+  crop_a.exr, crop_b.exr        two crops of examples/data/sample.exr (45 x 37: padded on both
+                                axes; 56 x 40: no padding), every layer f32, the last dx column
+                                and dy row zero (the gradient convention)
+  <crop>_data.npy, _grad.npy    pipeline.prepare_inputs with features: 3 x 8 x Hp x Wp, 3 x 2 x Hp x Wp
+  <crop>_torch.npy              the torch full model on those inputs: 3 x 1 x Hp x Wp
+  <crop>_out.npy                pipeline.reconstruct with the torch full model: H x W x 3
+  <crop>_out_nobias.npy         the same without the bias correction
+  <crop>_nofeat_out.npy         pipeline.reconstruct with the torch no-feature model
+  bias_out.npy, bias_color.npy, bias_corrected.npy
+                                pipeline.bias_correct on random 23 x 61 x 3 data
+
+Run (needs the checkpoints of docs/gradnet.md; takes a few seconds):
+    source onnx/env.sh
+    $GDRECON_PYTHON onnx/make_fixtures.py
+"""
+import argparse
+import os
+import sys
+
+import numpy as np
+import torch
+
+ONNX_DIR = os.path.dirname(os.path.abspath(__file__))
+REPO = os.path.dirname(ONNX_DIR)
+sys.path.insert(0, ONNX_DIR)
+sys.path.insert(0, os.path.join(ONNX_DIR, "data"))
+
+import export as ex  # noqa: E402
+import pipeline as pl  # noqa: E402
+from render import write_bundle  # noqa: E402
+
+RUNS = os.path.expanduser("~/.cache/gdrecon/train_runs")
+CROPS = {"crop_a": (60, 100, 37, 45), "crop_b": (100, 200, 40, 56)}   # y0, x0, h, w
+LAYERS = ("color", "dx", "dy", "albedo", "normal", "depth", "variance", "reference")
+
+
+def crop(frame, y0, x0, h, w):
+    out = {}
+    for k in LAYERS:
+        if frame.get(k) is not None:
+            out[k] = np.ascontiguousarray(frame[k][y0:y0 + h, x0:x0 + w], np.float32)
+    out["dx"][:, -1] = 0.0
+    out["dy"][-1, :] = 0.0
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", default=os.path.join(REPO, "tests", "fixtures", "gradnet"))
+    ap.add_argument("--full", default=os.path.join(RUNS, "full", "last.pt"))
+    ap.add_argument("--nofeat", default=os.path.join(RUNS, "nofeat", "last.pt"))
+    args = ap.parse_args(argv)
+    torch.set_num_threads(2)
+    os.makedirs(args.out, exist_ok=True)
+    full, _ = ex.load_checkpoint(args.full)
+    nofeat, _ = ex.load_checkpoint(args.nofeat)
+    run_full, run_nofeat = pl.torch_runner(full), pl.torch_runner(nofeat)
+    sample = pl.read_frame(os.path.join(REPO, "examples", "data", "sample.exr"))
+    save = lambda name, a: np.save(os.path.join(args.out, name), np.asarray(a, np.float32))  # noqa: E731
+    for name, (y0, x0, h, w) in CROPS.items():
+        fr = crop(sample, y0, x0, h, w)
+        write_bundle(os.path.join(args.out, f"{name}.exr"), fr, {"spp": float(sample["spp"] or 16)},
+                     feature_half=False)
+        data, grad, _ = pl.prepare_inputs(pl.sanitize(fr), use_features=True)
+        save(f"{name}_data.npy", data)
+        save(f"{name}_grad.npy", grad)
+        save(f"{name}_torch.npy", run_full(data, grad))
+        save(f"{name}_out.npy", pl.reconstruct(fr, run_full))
+        save(f"{name}_out_nobias.npy", pl.reconstruct(fr, run_full, correct_bias=False))
+        save(f"{name}_nofeat_out.npy", pl.reconstruct(fr, run_nofeat))
+        print(f"{name}: {w} x {h}, padded {data.shape[3]} x {data.shape[2]}")
+    rng = np.random.default_rng(3)
+    out = rng.random((23, 61, 3), dtype=np.float32) * 2
+    color = (out * rng.uniform(0.5, 1.5, out.shape)).astype(np.float32)
+    save("bias_out.npy", out)
+    save("bias_color.npy", color)
+    save("bias_corrected.npy", pl.bias_correct(out, color))
+    print("wrote", args.out)
+
+
+if __name__ == "__main__":
+    main()

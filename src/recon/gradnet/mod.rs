@@ -1,0 +1,295 @@
+//! GradNet (Guo et al. 2019): the unsupervised multi-branch auto-encoder, run through ONNX
+//! Runtime, with every transform around the network done natively.
+//!
+//! Per frame: feature normalisation and μ-law compression ([`prep`]), padding to a multiple of
+//! 8 by index maps, the network per colour channel (R, G, B each a batch of one: the same
+//! speed as a batch of three here, a third of the memory) in overlapping tiles ([`tiles`]),
+//! the inverse μ-law, then the Gaussian bias correction over the whole frame ([`bias`]).
+//! `onnx/pipeline.py` is the reference this module is tested against.
+//!
+//! Only this module (and only with the `gradnet` cargo feature) knows about ONNX Runtime. The
+//! runtime is found and loaded by the first GradNet plan ([`runtime`]); sessions are kept in
+//! the [`Context`] and shared by every plan made from it, so frames of several sizes reuse
+//! one loaded model.
+
+pub(crate) mod bias;
+pub mod model;
+pub(crate) mod prep;
+pub(crate) mod tiles;
+
+#[cfg(feature = "gradnet")]
+mod net;
+#[cfg(test)]
+mod parity;
+#[cfg(feature = "gradnet")]
+mod runtime;
+
+use std::path::PathBuf;
+
+pub use model::ModelVariant;
+
+/// Settings of [`GradNet`].
+#[derive(Clone, Debug, PartialEq)]
+#[non_exhaustive]
+pub struct GradNetConfig {
+    /// A model file to run instead of the embedded models. Its SHA-256 must match the
+    /// `.sha256` file beside it (written by `onnx/export.py`) or one of the embedded models'.
+    /// Its `data` input decides whether it uses features.
+    pub model: Option<PathBuf>,
+    /// The ONNX Runtime library to load, before the other discovery steps.
+    pub runtime: Option<PathBuf>,
+    /// Use albedo, normal and depth when the frame has them (the full model); `false` always
+    /// runs the no-feature model.
+    pub use_features: bool,
+    /// Largest tile side in pixels (after padding to a multiple of 8); larger frames run in
+    /// overlapping tiles of this size. `0` never tiles. At least 208.
+    pub tile_size: usize,
+    /// Apply the release's Gaussian bias correction (on by default).
+    pub bias_correction: bool,
+}
+
+impl Default for GradNetConfig {
+    fn default() -> Self {
+        GradNetConfig {
+            model: None,
+            runtime: None,
+            use_features: true,
+            tile_size: DEFAULT_TILE,
+            bias_correction: true,
+        }
+    }
+}
+
+/// Default [`GradNetConfig::tile_size`]: 1280 x 720 runs as one tile, 4K as 8 tiles of
+/// 1024 x 1024 and stays under 1.5 GB.
+pub const DEFAULT_TILE: usize = 1280;
+
+#[cfg(feature = "gradnet")]
+pub use enabled::GradNet;
+
+#[cfg(feature = "gradnet")]
+mod enabled {
+    use std::sync::{Arc, Mutex};
+    use std::time::{Duration, Instant};
+
+    use ndarray::{s, Array4};
+
+    use super::model::{self, ModelVariant};
+    use super::net::Net;
+    use super::prep::{self, FeatureNorm, FrameMap, Window};
+    use super::tiles::{self, Tile};
+    use super::{bias, runtime, GradNetConfig};
+    use crate::context::Context;
+    use crate::error::{Error, Result};
+    use crate::frame::Frame;
+    use crate::image::Image;
+    use crate::progress::Progress;
+    use crate::recon::{Method, Reconstructor};
+    use crate::report::{Report, Stage};
+
+    type SharedNet = Arc<Mutex<Net>>;
+
+    /// GradNet planned for one frame size.
+    pub struct GradNet {
+        config: GradNetConfig,
+        context: Context,
+        map: FrameMap,
+        tiles: Vec<Tile>,
+        /// `1 x 8 x th x tw` (channel 0 colour, 1..8 features) and `1 x 2 x th x tw`.
+        data: Array4<f32>,
+        grad: Array4<f32>,
+        /// Loaded networks: the configured file, or the embedded full / no-feature models.
+        nets: [Option<SharedNet>; 2],
+        runtime_path: String,
+    }
+
+    impl std::fmt::Debug for GradNet {
+        fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+            f.debug_struct("GradNet")
+                .field("config", &self.config)
+                .field("tiles", &self.tiles.len())
+                .finish()
+        }
+    }
+
+    impl GradNet {
+        /// Plans GradNet for `width x height` frames on `context`: finds and loads ONNX
+        /// Runtime (once per process) and the model (once per context), lays out the tiles and
+        /// allocates one tile's buffers.
+        pub fn new(
+            config: GradNetConfig,
+            context: &Context,
+            width: usize,
+            height: usize,
+        ) -> Result<Self> {
+            let map = FrameMap::new(width, height);
+            let tiles = tiles::layout(map.x.padded_len(), map.y.padded_len(), config.tile_size)?;
+            let (th, tw) = (tiles[0].y.size, tiles[0].x.size);
+            let runtime = runtime::runtime(config.runtime.as_deref())?;
+            let mut plan = GradNet {
+                map,
+                tiles,
+                data: Array4::zeros((1, 8, th, tw)),
+                grad: Array4::zeros((1, 2, th, tw)),
+                nets: [None, None],
+                runtime_path: runtime.path.display().to_string(),
+                context: context.clone(),
+                config,
+            };
+            // Load the model most frames will need now, so the first frame does not pay.
+            let first = if plan.config.model.is_some() || plan.config.use_features {
+                ModelVariant::Full
+            } else {
+                ModelVariant::NoFeatures
+            };
+            plan.net(first)?;
+            Ok(plan)
+        }
+
+        /// The network for `variant` (ignored when a model file is configured), loaded into
+        /// the context on first use.
+        fn net(&mut self, variant: ModelVariant) -> Result<SharedNet> {
+            let slot = if self.config.model.is_some() {
+                0
+            } else {
+                variant as usize
+            };
+            if let Some(net) = &self.nets[slot] {
+                return Ok(net.clone());
+            }
+            let bytes = match &self.config.model {
+                Some(path) => model::from_file(path)?,
+                None => model::embedded(variant)?,
+            };
+            let threads = self.context.threads();
+            let key = format!("gradnet:{}:{threads}", bytes.sha256);
+            let runtime_path = self.config.runtime.clone();
+            let net = self.context.shared(&key, || {
+                let rt = runtime::runtime(runtime_path.as_deref())?;
+                Ok(Mutex::new(Net::new(&rt.env, &bytes, threads)?))
+            })?;
+            self.nets[slot] = Some(net.clone());
+            Ok(net)
+        }
+    }
+
+    impl Reconstructor for GradNet {
+        fn method(&self) -> Method {
+            Method::GradNet
+        }
+
+        fn reconstruct_into(
+            &mut self,
+            frame: &Frame,
+            out: &mut Image,
+            report: &mut Report,
+            progress: &Progress,
+        ) -> Result<()> {
+            let norm = if self.config.use_features {
+                FeatureNorm::of(frame)
+            } else {
+                None
+            };
+            let variant = if norm.is_some() {
+                ModelVariant::Full
+            } else {
+                ModelVariant::NoFeatures
+            };
+            let net = self.net(variant)?;
+            let mut net = net.lock().unwrap_or_else(|p| p.into_inner());
+            let use_features = net.data_channels == 8;
+            if use_features && norm.is_none() {
+                return Err(Error::input(format!(
+                    "the model {} uses albedo, normal and depth, which this frame lacks{}",
+                    net.origin,
+                    if self.config.use_features {
+                        ""
+                    } else {
+                        " (or use_features is off)"
+                    }
+                )));
+            }
+            if !use_features {
+                report.skip(if norm.is_none() && self.config.use_features {
+                    "feature branch: the frame has no albedo/normal/depth, ran the no-feature model"
+                } else {
+                    "feature branch: the model has none"
+                });
+            }
+            report.note(format!(
+                "GradNet: model {}, ONNX Runtime {}, {} tile(s) of {} x {}",
+                net.origin,
+                self.runtime_path,
+                self.tiles.len(),
+                self.data.dim().3,
+                self.data.dim().2
+            ));
+
+            let (mut prepare, mut network) = (Duration::ZERO, Duration::ZERO);
+            let (h, w) = (frame.height(), frame.width());
+            let runs = (self.tiles.len() * 3) as f64;
+            let mut done = 0.0;
+            for tile in self.tiles.clone() {
+                let win = Window {
+                    y0: tile.y.origin,
+                    x0: tile.x.origin,
+                    h: tile.y.size,
+                    w: tile.x.size,
+                };
+                let started = Instant::now();
+                if let (true, Some(norm)) = (use_features, norm) {
+                    let planes = self
+                        .data
+                        .slice_mut(s![0, 1..8, .., ..])
+                        .into_slice()
+                        .expect("tile buffers are contiguous");
+                    prep::fill_features(frame, norm, self.map, win, planes);
+                }
+                prepare += started.elapsed();
+                for c in 0..3 {
+                    let started = Instant::now();
+                    let (gx, gy) = self
+                        .grad
+                        .multi_slice_mut((s![0, 0, .., ..], s![0, 1, .., ..]));
+                    let colour = self.data.slice_mut(s![0, 0, .., ..]);
+                    prep::fill_channel(frame, c, self.map, win, colour, gx, gy);
+                    let filled = Instant::now();
+                    prepare += filled - started;
+                    let data = self.data.slice(s![.., ..net.data_channels, .., ..]);
+                    let mut plane = out.plane_mut(c);
+                    net.run(data, self.grad.view(), |y| {
+                        // Keep the core, inside the frame; inverse μ-law, clamp at 0.
+                        let rows = tile.y.core_start..tile.y.core_end.min(h);
+                        let cols = tile.x.core_start..tile.x.core_end.min(w);
+                        for py in rows {
+                            let src = y.row(py - tile.y.origin);
+                            let mut dst = plane.row_mut(py);
+                            for px in cols.clone() {
+                                let v = prep::expand(src[px - tile.x.origin]);
+                                dst[px] = if v > 0.0 && v.is_finite() { v } else { 0.0 };
+                            }
+                        }
+                    })?;
+                    network += filled.elapsed();
+                    done += 1.0;
+                    progress.update(0.97 * done / runs)?;
+                }
+            }
+            report.stages.push(Stage {
+                name: "prepare".into(),
+                time: prepare,
+            });
+            report.stages.push(Stage {
+                name: "network".into(),
+                time: network,
+            });
+            if self.config.bias_correction {
+                report.time("bias correction", || bias::correct(out, frame.color()));
+            } else {
+                report.skip("bias correction (disabled)");
+            }
+            progress.update(1.0)?;
+            Ok(())
+        }
+    }
+}

@@ -1,0 +1,216 @@
+//! Where GradNet's weights come from, and proof that they are the ones exported.
+//!
+//! The two exported models (`onnx/gradnet.onnx` with features, `onnx/gradnet_nofeat.onnx`
+//! without) are embedded in the library by the `embed-model` feature (on by default), or read
+//! from a file. Either way the SHA-256 of the bytes is checked before ONNX Runtime sees them:
+//! against the `.sha256` file `onnx/export.py` writes beside each model (recorded at export),
+//! or, for a file without one, against the hashes of the two models this build knows.
+
+use std::borrow::Cow;
+use std::path::{Path, PathBuf};
+
+use sha2::{Digest, Sha256};
+
+use crate::error::{Error, Result};
+
+/// Which exported model: with the feature branch (8 data channels) or without (1).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum ModelVariant {
+    /// `gradnet.onnx`: colour, albedo, normal and depth in the data branch.
+    Full,
+    /// `gradnet_nofeat.onnx`: colour only, for frames without feature layers.
+    NoFeatures,
+}
+
+impl ModelVariant {
+    /// The exported file's name.
+    pub fn file_name(self) -> &'static str {
+        match self {
+            ModelVariant::Full => "gradnet.onnx",
+            ModelVariant::NoFeatures => "gradnet_nofeat.onnx",
+        }
+    }
+
+    /// Channels of the data branch's input.
+    pub fn data_channels(self) -> usize {
+        match self {
+            ModelVariant::Full => 8,
+            ModelVariant::NoFeatures => 1,
+        }
+    }
+
+    /// The SHA-256 recorded at export (lower-case hex).
+    pub fn recorded_sha256(self) -> &'static str {
+        let line = match self {
+            ModelVariant::Full => include_str!("../../../onnx/gradnet.onnx.sha256"),
+            ModelVariant::NoFeatures => include_str!("../../../onnx/gradnet_nofeat.onnx.sha256"),
+        };
+        line.split_whitespace().next().unwrap_or_default()
+    }
+}
+
+/// Model bytes whose hash has been checked.
+#[derive(Clone)]
+pub(crate) struct ModelBytes {
+    pub bytes: Cow<'static, [u8]>,
+    pub sha256: String,
+    /// Where they came from, for messages and reports.
+    pub origin: String,
+}
+
+impl std::fmt::Debug for ModelBytes {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ModelBytes")
+            .field("origin", &self.origin)
+            .field("sha256", &self.sha256)
+            .field("len", &self.bytes.len())
+            .finish()
+    }
+}
+
+/// Lower-case hex SHA-256.
+pub(crate) fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// The embedded model of `variant`, hash-checked.
+pub(crate) fn embedded(variant: ModelVariant) -> Result<ModelBytes> {
+    #[cfg(feature = "embed-model")]
+    {
+        let bytes: &'static [u8] = match variant {
+            ModelVariant::Full => include_bytes!("../../../onnx/gradnet.onnx"),
+            ModelVariant::NoFeatures => include_bytes!("../../../onnx/gradnet_nofeat.onnx"),
+        };
+        let origin = format!("embedded {}", variant.file_name());
+        checked(Cow::Borrowed(bytes), variant.recorded_sha256(), origin)
+    }
+    #[cfg(not(feature = "embed-model"))]
+    {
+        Err(Error::Unsupported(format!(
+            "this build has no embedded GradNet model (cargo feature `embed-model` is off): \
+             give the path of {} as the model",
+            variant.file_name()
+        )))
+    }
+}
+
+/// The model in `path`, hash-checked against `path.sha256` if present, else against the
+/// models this build knows.
+pub(crate) fn from_file(path: &Path) -> Result<ModelBytes> {
+    let bytes = std::fs::read(path).map_err(|source| Error::Io {
+        path: path.to_owned(),
+        source: std::io::Error::new(
+            source.kind(),
+            format!("cannot read the GradNet model: {source}"),
+        ),
+    })?;
+    let sidecar = sidecar_path(path);
+    let origin = path.display().to_string();
+    match std::fs::read_to_string(&sidecar) {
+        Ok(text) => {
+            let expected = text
+                .split_whitespace()
+                .next()
+                .unwrap_or_default()
+                .to_owned();
+            checked(Cow::Owned(bytes), &expected, origin)
+        }
+        Err(_) => {
+            let actual = sha256_hex(&bytes);
+            let known = [ModelVariant::Full, ModelVariant::NoFeatures];
+            if known.iter().any(|v| v.recorded_sha256() == actual) {
+                Ok(ModelBytes {
+                    bytes: Cow::Owned(bytes),
+                    sha256: actual,
+                    origin,
+                })
+            } else {
+                Err(Error::Model(format!(
+                    "{origin}: SHA-256 {actual} is not that of an exported GradNet model \
+                     (expected {} or {}, or a {} file beside the model as onnx/export.py \
+                     writes): the file is damaged or is another model",
+                    ModelVariant::Full.recorded_sha256(),
+                    ModelVariant::NoFeatures.recorded_sha256(),
+                    sidecar.display()
+                )))
+            }
+        }
+    }
+}
+
+fn sidecar_path(path: &Path) -> PathBuf {
+    let mut name = path.as_os_str().to_owned();
+    name.push(".sha256");
+    PathBuf::from(name)
+}
+
+fn checked(bytes: Cow<'static, [u8]>, expected: &str, origin: String) -> Result<ModelBytes> {
+    let actual = sha256_hex(&bytes);
+    if !actual.eq_ignore_ascii_case(expected) {
+        return Err(Error::Model(format!(
+            "{origin}: SHA-256 is {actual}, but {expected} was recorded at export: the model \
+             is damaged or not the exported one"
+        )));
+    }
+    Ok(ModelBytes {
+        bytes,
+        sha256: actual,
+        origin,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sha256_of_known_vectors() {
+        assert_eq!(
+            sha256_hex(b"abc"),
+            "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
+        );
+    }
+
+    #[test]
+    fn recorded_hashes_are_those_of_models_json() {
+        let json = include_str!("../../../onnx/models.json");
+        for v in [ModelVariant::Full, ModelVariant::NoFeatures] {
+            let h = v.recorded_sha256();
+            assert_eq!(h.len(), 64);
+            assert!(json.contains(&format!("\"sha256\": \"{h}\"")), "{v:?}");
+        }
+    }
+
+    #[cfg(feature = "embed-model")]
+    #[test]
+    fn embedded_models_pass_their_check() {
+        for v in [ModelVariant::Full, ModelVariant::NoFeatures] {
+            let m = embedded(v).unwrap();
+            assert_eq!(m.sha256, v.recorded_sha256());
+        }
+    }
+
+    #[test]
+    fn file_errors_are_distinct() {
+        let dir = std::env::temp_dir().join(format!("gdrecon-model-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let missing = from_file(&dir.join("none.onnx")).unwrap_err();
+        assert!(matches!(missing, Error::Io { .. }), "{missing}");
+        let other = dir.join("other.onnx");
+        std::fs::write(&other, b"not a model").unwrap();
+        let unknown = from_file(&other).unwrap_err().to_string();
+        assert!(
+            unknown.contains("not that of an exported GradNet model"),
+            "{unknown}"
+        );
+        std::fs::write(sidecar_path(&other), "00  other.onnx\n").unwrap();
+        let mismatch = from_file(&other).unwrap_err().to_string();
+        assert!(mismatch.contains("was recorded at export"), "{mismatch}");
+        std::fs::write(sidecar_path(&other), sha256_hex(b"not a model")).unwrap();
+        assert!(from_file(&other).is_ok(), "a matching sidecar is accepted");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,141 @@
+//! Overlapping tiles for frames larger than the configured tile, so that the network's memory
+//! is bounded by the tile, not by the frame.
+//!
+//! The network's receptive field has a radius of 86 pixels (7 from the three stride-2
+//! encoders, 64 from the eight 3 x 3 convolutions at 1/8 resolution, 14 from the three
+//! transposed convolutions, 1 from the last convolution); measured: a change to one input pixel
+//! moves outputs at most 84 pixels away. Each tile therefore reads [`MARGIN`] = 96 pixels beyond
+//! the part of the output it owns (its core), on every side that is not a frame border, and the
+//! cores tile the frame exactly: the result equals the untiled run up to floating-point
+//! reordering, with no blending needed. Tile origins are multiples of 8 so the stride-2 grids
+//! line up with the untiled run's.
+//!
+//! All tiles of a frame have the same size (the last one along an axis overlaps its neighbour
+//! more), so ONNX Runtime's memory arena, which grows to the largest shape it has seen, stays
+//! at one tile's size.
+
+use super::prep::PAD_MULTIPLE;
+use crate::error::{Error, Result};
+
+/// Pixels each tile reads beyond its core on interior sides (receptive field, rounded up to 8).
+pub(crate) const MARGIN: usize = 96;
+/// The smallest tile that leaves a core: two margins and 8 pixels.
+pub(crate) const MIN_TILE: usize = 2 * MARGIN + 2 * PAD_MULTIPLE;
+
+/// One tile along one axis: the network reads `origin..origin + size`, and writes back
+/// `core_start..core_end` (all in padded coordinates).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Span {
+    pub origin: usize,
+    pub size: usize,
+    pub core_start: usize,
+    pub core_end: usize,
+}
+
+/// Splits a padded axis of length `n` (a multiple of 8) into spans at most `max` long.
+pub(crate) fn split(n: usize, max: usize) -> Result<Vec<Span>> {
+    debug_assert_eq!(n % PAD_MULTIPLE, 0);
+    if n <= max {
+        return Ok(vec![Span {
+            origin: 0,
+            size: n,
+            core_start: 0,
+            core_end: n,
+        }]);
+    }
+    if max < MIN_TILE {
+        return Err(Error::arg(format!(
+            "tile size {max} is too small: tiles need at least {MIN_TILE} pixels \
+             ({MARGIN} of overlap on each side, for the network's receptive field)"
+        )));
+    }
+    let size = max / PAD_MULTIPLE * PAD_MULTIPLE;
+    // Greedy from the start: each tile owns all but its right margin; the last one is moved
+    // back to end at the border. Every tile costs the same, so the fewest tiles is the
+    // cheapest layout, whatever the cores' sizes.
+    let mut spans = Vec::new();
+    let mut start: usize = 0;
+    loop {
+        let origin = start.saturating_sub(MARGIN);
+        if origin + size >= n {
+            spans.push(Span {
+                origin: n - size,
+                size,
+                core_start: start,
+                core_end: n,
+            });
+            return Ok(spans);
+        }
+        let core_end = origin + size - MARGIN;
+        spans.push(Span {
+            origin,
+            size,
+            core_start: start,
+            core_end,
+        });
+        start = core_end;
+    }
+}
+
+/// A tile: spans along y and x.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Tile {
+    pub y: Span,
+    pub x: Span,
+}
+
+/// Tiles covering a padded `width x height` frame, at most `max` pixels on a side
+/// (`max == 0`: one tile).
+pub(crate) fn layout(width: usize, height: usize, max: usize) -> Result<Vec<Tile>> {
+    let max = if max == 0 { usize::MAX } else { max };
+    let (ys, xs) = (split(height, max)?, split(width, max)?);
+    Ok(ys
+        .iter()
+        .flat_map(|&y| xs.iter().map(move |&x| Tile { y, x }))
+        .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cores_partition_the_axis_with_full_margins() {
+        for n in (8..5000).step_by(8) {
+            for &max in &[MIN_TILE, 256, 512, 1000, 1024, 4096] {
+                let spans = split(n, max).unwrap();
+                let mut next = 0;
+                for (k, s) in spans.iter().enumerate() {
+                    assert_eq!(s.core_start, next, "n {n} max {max}");
+                    assert!(s.core_end > s.core_start);
+                    assert!(s.origin + s.size <= n && s.size <= max);
+                    assert_eq!(s.origin % 8, 0);
+                    assert_eq!(s.size, spans[0].size, "all tiles share one size");
+                    let fewest = if n <= max {
+                        1
+                    } else {
+                        (n - 2 * MARGIN).div_ceil(max / 8 * 8 - 2 * MARGIN)
+                    };
+                    assert!(
+                        spans.len() <= fewest.max(1),
+                        "n {n} max {max}: {} tiles",
+                        spans.len()
+                    );
+                    assert!(k == 0 || s.core_start >= s.origin + MARGIN);
+                    assert!(k + 1 == spans.len() || s.core_end + MARGIN <= s.origin + s.size);
+                    next = s.core_end;
+                }
+                assert_eq!(next, n);
+            }
+        }
+    }
+
+    #[test]
+    fn small_frames_are_one_tile_and_small_tiles_are_refused() {
+        assert_eq!(layout(720, 1280, 0).unwrap().len(), 1);
+        assert_eq!(layout(1280, 720, 1280).unwrap().len(), 1);
+        assert_eq!(layout(1280, 720, 1024).unwrap().len(), 2);
+        let err = split(1024, 100).unwrap_err().to_string();
+        assert!(err.contains("too small"), "{err}");
+    }
+}

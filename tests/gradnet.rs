@@ -1,0 +1,298 @@
+//! GradNet through the public API and the CLI: the whole pipeline against the Python reference
+//! (`onnx/pipeline.py` with the torch model; fixtures from `onnx/make_fixtures.py`), tiling
+//! against the untiled run, and each failure a distinct, clear error.
+//!
+//! Needs ONNX Runtime 1.31 (found by the library's discovery: `bash onnx/setup.sh` installs
+//! it). Tolerances: the pipeline matches Python to 1e-4 relative (|a - b| <= 1e-4 (|b| + 1e-3));
+//! tiled matches untiled to the same bound.
+#![cfg(all(feature = "gradnet", feature = "embed-model"))]
+
+use std::path::{Path, PathBuf};
+
+use assert_cmd::Command;
+use gdrecon::recon::GradNetConfig;
+use gdrecon::{
+    io, Context, ContextOptions, Error, Frame, Image, Layer, MethodConfig, Plan, Policy, Progress,
+};
+use ndarray::{Array3, ArrayD};
+
+fn fixture(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures/gradnet")
+        .join(name)
+}
+
+fn expected(name: &str) -> Image {
+    let a: ArrayD<f32> = ndarray_npy::read_npy(fixture(name)).unwrap();
+    let a: Array3<f32> = a.into_dimensionality().unwrap();
+    Image::from_hwc(a.view())
+}
+
+fn context() -> Context {
+    Context::new(ContextOptions { threads: Some(2) }).unwrap()
+}
+
+fn run(frame: &Frame, config: GradNetConfig) -> gdrecon::Result<Image> {
+    let mut plan = Plan::new(
+        &context(),
+        &MethodConfig::GradNet(config),
+        frame.width(),
+        frame.height(),
+    )?;
+    Ok(plan.execute(frame, &Progress::none())?.0)
+}
+
+fn assert_close(got: &Image, want: &Image, what: &str) {
+    assert_eq!(got.size(), want.size(), "{what}");
+    let mut worst = 0.0f32;
+    for (g, w) in got.as_slice().iter().zip(want.as_slice()) {
+        worst = worst.max((g - w).abs() / (w.abs() + 1e-3));
+    }
+    assert!(worst <= 1e-4, "{what}: worst relative difference {worst:e}");
+}
+
+fn crop(name: &str) -> Frame {
+    io::read_bundle(fixture(&format!("{name}.exr")), Policy::Replace).unwrap()
+}
+
+fn without_features(frame: Frame) -> Frame {
+    frame
+        .into_builder()
+        .without(Layer::Albedo)
+        .without(Layer::Normal)
+        .without(Layer::Depth)
+        .build(Policy::Replace)
+        .unwrap()
+}
+
+#[test]
+fn pipeline_matches_the_python_reference() {
+    for name in ["crop_a", "crop_b"] {
+        let frame = crop(name);
+        let full = run(&frame, GradNetConfig::default()).unwrap();
+        assert_close(&full, &expected(&format!("{name}_out.npy")), name);
+
+        let mut no_bias = GradNetConfig::default();
+        no_bias.bias_correction = false;
+        let raw = run(&frame, no_bias).unwrap();
+        assert_close(&raw, &expected(&format!("{name}_out_nobias.npy")), name);
+
+        // A frame without features runs the no-feature model, and so does use_features off.
+        let nofeat_want = expected(&format!("{name}_nofeat_out.npy"));
+        let bare = run(&without_features(frame.clone()), GradNetConfig::default()).unwrap();
+        assert_close(&bare, &nofeat_want, &format!("{name} without features"));
+        let mut off = GradNetConfig::default();
+        off.use_features = false;
+        assert_close(&run(&frame, off).unwrap(), &nofeat_want, name);
+    }
+}
+
+#[test]
+fn tiles_match_the_untiled_run() {
+    let frame = io::read_bundle(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data/sample.exr"),
+        Policy::Replace,
+    )
+    .unwrap();
+    let mut whole = GradNetConfig::default();
+    whole.tile_size = 0;
+    let mut tiled = GradNetConfig::default();
+    tiled.tile_size = 256; // 320 x 184 padded: 2 x 1 tiles of 256 x 184
+    let mut plan = Plan::new(&context(), &MethodConfig::GradNet(tiled), 320, 180).unwrap();
+    let (got, report) = plan.execute(&frame, &Progress::none()).unwrap();
+    assert!(
+        report.notes.iter().any(|n| n.contains("2 tile(s)")),
+        "{:?}",
+        report.notes
+    );
+    assert_close(&got, &run(&frame, whole).unwrap(), "tiled");
+}
+
+#[test]
+fn plans_reuse_the_context_session_and_report_what_ran() {
+    let frame = crop("crop_a");
+    let ctx = context();
+    let config = MethodConfig::GradNet(GradNetConfig::default());
+    let mut a = Plan::new(&ctx, &config, frame.width(), frame.height()).unwrap();
+    let (first, report) = a.execute(&frame, &Progress::none()).unwrap();
+    assert!(report.stages.iter().any(|s| s.name == "network"));
+    assert!(report
+        .notes
+        .iter()
+        .any(|n| n.contains("embedded gradnet.onnx")));
+    let mut b = Plan::new(&ctx, &config, frame.width(), frame.height()).unwrap();
+    let (second, _) = b.execute(&frame, &Progress::none()).unwrap();
+    assert_eq!(
+        first.as_slice(),
+        second.as_slice(),
+        "same session, same result"
+    );
+    let bare = without_features(frame);
+    let (_, report) = a.execute(&bare, &Progress::none()).unwrap();
+    assert!(
+        report
+            .skipped
+            .iter()
+            .any(|s| s.contains("no-feature model")),
+        "{:?}",
+        report.skipped
+    );
+}
+
+#[test]
+fn model_errors_are_distinct() {
+    let dir = tempfile::tempdir().unwrap();
+    let frame = crop("crop_a");
+    let with_model = |path: PathBuf| {
+        let mut c = GradNetConfig::default();
+        c.model = Some(path);
+        run(&frame, c).unwrap_err()
+    };
+    // Missing file: an I/O error naming it.
+    let missing = with_model(dir.path().join("absent.onnx"));
+    assert!(matches!(missing, Error::Io { .. }), "{missing}");
+    assert!(missing.to_string().contains("absent.onnx"), "{missing}");
+
+    // Wrong hash: the committed model with one byte changed.
+    let mut bytes =
+        std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("onnx/gradnet.onnx")).unwrap();
+    let n = bytes.len();
+    bytes[n / 2] ^= 1;
+    let altered = dir.path().join("altered.onnx");
+    std::fs::write(&altered, &bytes).unwrap();
+    let wrong = with_model(altered.clone());
+    assert!(matches!(wrong, Error::Model(_)), "{wrong}");
+    assert!(
+        wrong
+            .to_string()
+            .contains("not that of an exported GradNet model"),
+        "{wrong}"
+    );
+    std::fs::write(dir.path().join("altered.onnx.sha256"), "0".repeat(64)).unwrap();
+    let mismatch = with_model(altered);
+    assert!(
+        mismatch.to_string().contains("recorded at export"),
+        "{mismatch}"
+    );
+
+    // Corrupted: garbage whose recorded hash matches, so ONNX Runtime is what rejects it.
+    let garbage = dir.path().join("garbage.onnx");
+    std::fs::write(&garbage, b"this is not protobuf").unwrap();
+    let digest = std::process::Command::new("sha256sum")
+        .arg(&garbage)
+        .output()
+        .unwrap();
+    std::fs::write(
+        dir.path().join("garbage.onnx.sha256"),
+        String::from_utf8(digest.stdout).unwrap(),
+    )
+    .unwrap();
+    let corrupted = with_model(garbage);
+    assert!(matches!(corrupted, Error::Model(_)), "{corrupted}");
+    assert!(
+        corrupted
+            .to_string()
+            .contains("ONNX Runtime cannot load it"),
+        "{corrupted}"
+    );
+
+    // The full model on a frame without features.
+    let mut c = GradNetConfig::default();
+    c.model = Some(Path::new(env!("CARGO_MANIFEST_DIR")).join("onnx/gradnet.onnx"));
+    let needs = run(&without_features(frame.clone()), c).unwrap_err();
+    assert!(matches!(needs, Error::InvalidInput(_)), "{needs}");
+    assert!(
+        needs.to_string().contains("albedo, normal and depth"),
+        "{needs}"
+    );
+
+    // A tile too small for the receptive field.
+    let mut c = GradNetConfig::default();
+    c.tile_size = 100;
+    let small = run(&crop("crop_a"), c);
+    assert!(small.is_ok(), "a frame smaller than the tile is one tile");
+    let big = io::read_bundle(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data/sample.exr"),
+        Policy::Replace,
+    )
+    .unwrap();
+    let mut c = GradNetConfig::default();
+    c.tile_size = 100;
+    let err = run(&big, c).unwrap_err();
+    assert!(matches!(err, Error::InvalidArgument(_)), "{err}");
+}
+
+fn gdrecon() -> Command {
+    Command::cargo_bin("gdrecon").unwrap()
+}
+
+#[test]
+fn cli_reconstructs_the_sample_and_reports_relmse() {
+    let out = tempfile::tempdir().unwrap();
+    let assert = gdrecon()
+        .args([
+            "reconstruct",
+            "examples/data/sample.exr",
+            "--method",
+            "gradnet",
+            "-o",
+        ])
+        .arg(out.path().join("g.exr"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .assert()
+        .success();
+    let text = String::from_utf8_lossy(&assert.get_output().stdout).to_string();
+    let relmse = |label: &str| -> f64 {
+        let line = text
+            .lines()
+            .find(|l| l.starts_with(label))
+            .unwrap_or_else(|| panic!("no '{label}' line in:\n{text}"));
+        line.split_whitespace().nth(2).unwrap().parse().unwrap()
+    };
+    assert!(relmse("gradnet") < 0.2 * relmse("base"), "{text}");
+}
+
+#[test]
+fn missing_runtime_is_one_clear_error_and_other_methods_still_work() {
+    let out = tempfile::tempdir().unwrap();
+    let cmd = |method: &str| {
+        let mut c = gdrecon();
+        c.args([
+            "reconstruct",
+            "examples/data/sample.exr",
+            "--method",
+            method,
+            "-o",
+        ])
+        .arg(out.path().join("x.exr"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .env_remove("ORT_DYLIB_PATH")
+        .env("GDRECON_VENV", out.path().join("no-venv"));
+        c
+    };
+    let failed = cmd("gradnet").assert().failure();
+    let err = String::from_utf8_lossy(&failed.get_output().stderr).to_string();
+    for part in [
+        "GradNet needs ONNX Runtime",
+        "1. explicit path",
+        "2. ORT_DYLIB_PATH: not set",
+        "3. next to the gdrecon library",
+        "4. the project's Python environment",
+        "onnx/setup.sh",
+    ] {
+        assert!(err.contains(part), "'{part}' missing from:\n{err}");
+    }
+    for method in ["l2", "l1"] {
+        cmd(method).assert().success();
+    }
+    // An explicit path that does not exist is named.
+    let failed = cmd("gradnet")
+        .args(["--onnxruntime", "/nonexistent/libonnxruntime.so"])
+        .assert()
+        .failure();
+    let err = String::from_utf8_lossy(&failed.get_output().stderr).to_string();
+    assert!(
+        err.contains("/nonexistent/libonnxruntime.so does not exist"),
+        "{err}"
+    );
+}
