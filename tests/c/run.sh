@@ -103,8 +103,8 @@ step "GradNet with ONNX Runtime next to the library (discovery step 3)"
 ort_lib="${ORT_DYLIB_PATH:-}"
 if [ -n "$ort_lib" ] && [ -f "$ort_lib" ]; then
     ln -sf "$ort_lib" "$prefix/lib/$(basename "$ort_lib")"
-    env -u ORT_DYLIB_PATH GDRECON_VENV="$work/no-venv" GDR_TEST_EXPECT_ORT_DIR="$prefix/lib" \
-        counted test_c_ort_beside "$work/test_c" "$work/ref" "$sample"
+    counted test_c_ort_beside env -u ORT_DYLIB_PATH GDRECON_VENV="$work/no-venv" \
+        GDR_TEST_EXPECT_ORT_DIR="$prefix/lib" "$work/test_c" "$work/ref" "$sample"
     rm -f "$prefix/lib/$(basename "$ort_lib")"
 else
     bad "ORT_DYLIB_PATH is not set: run bash onnx/setup.sh && source onnx/env.sh first"
