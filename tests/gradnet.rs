@@ -296,3 +296,22 @@ fn missing_runtime_is_one_clear_error_and_other_methods_still_work() {
         "{err}"
     );
 }
+
+#[test]
+fn thread_count_changes_results_only_by_rounding() {
+    // ONNX Runtime splits the convolutions by thread, so sums are reordered: results agree to
+    // rounding (the native stages are bit-identical for any thread count, as everywhere).
+    let frame = crop("crop_a");
+    let config = MethodConfig::GradNet(GradNetConfig::default());
+    let mut outs = Vec::new();
+    for threads in [1, 2, 3] {
+        let ctx = Context::new(ContextOptions {
+            threads: Some(threads),
+        })
+        .unwrap();
+        let mut plan = Plan::new(&ctx, &config, frame.width(), frame.height()).unwrap();
+        outs.push(plan.execute(&frame, &Progress::none()).unwrap().0);
+    }
+    assert_close(&outs[1], &outs[0], "2 vs 1 threads");
+    assert_close(&outs[2], &outs[0], "3 vs 1 threads");
+}

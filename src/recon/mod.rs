@@ -7,6 +7,7 @@
 //! for a size, bound to a [`Context`]'s thread pool, with the output guard that keeps NaN and Inf
 //! out of every result.
 
+pub mod auto;
 mod dct;
 pub mod filter;
 pub mod gradnet;
@@ -19,6 +20,7 @@ use std::str::FromStr;
 
 use rayon::prelude::*;
 
+pub use auto::{Auto, AutoConfig};
 pub use filter::{Filter, FilterConfig, FilterGuide};
 #[cfg(feature = "gradnet")]
 pub use gradnet::GradNet;
@@ -62,15 +64,18 @@ pub enum Method {
     /// GradNet (Guo et al. 2019) through ONNX Runtime (`gradnet`); needs the `gradnet` cargo
     /// feature and the runtime library at run time.
     GradNet,
+    /// Picks one of the others per frame from its spp and layers, and says why (`auto`).
+    Auto,
 }
 
 impl Method {
     /// Every method, in the order the CLI lists them.
-    pub const ALL: [Method; 4] = [
+    pub const ALL: [Method; 5] = [
         Method::PoissonL2,
         Method::PoissonL1,
         Method::Filter,
         Method::GradNet,
+        Method::Auto,
     ];
 
     /// The CLI / C ABI name.
@@ -80,6 +85,7 @@ impl Method {
             Method::PoissonL1 => "l1",
             Method::Filter => "filter",
             Method::GradNet => "gradnet",
+            Method::Auto => "auto",
         }
     }
 }
@@ -117,6 +123,8 @@ pub enum MethodConfig {
     Filter(FilterConfig),
     /// See [`GradNetConfig`].
     GradNet(GradNetConfig),
+    /// See [`AutoConfig`].
+    Auto(AutoConfig),
 }
 
 impl MethodConfig {
@@ -127,6 +135,7 @@ impl MethodConfig {
             Method::PoissonL1 => MethodConfig::PoissonL1(PoissonL1Config::default()),
             Method::Filter => MethodConfig::Filter(FilterConfig::default()),
             Method::GradNet => MethodConfig::GradNet(GradNetConfig::default()),
+            Method::Auto => MethodConfig::Auto(AutoConfig::default()),
         }
     }
 
@@ -137,6 +146,7 @@ impl MethodConfig {
             MethodConfig::PoissonL1(_) => Method::PoissonL1,
             MethodConfig::Filter(_) => Method::Filter,
             MethodConfig::GradNet(_) => Method::GradNet,
+            MethodConfig::Auto(_) => Method::Auto,
         }
     }
 
@@ -145,12 +155,15 @@ impl MethodConfig {
         match &mut self {
             MethodConfig::PoissonL2(c) => c.alpha = alpha,
             MethodConfig::PoissonL1(c) => c.alpha = alpha,
+            MethodConfig::Auto(c) => {
+                c.l1.alpha = alpha;
+            }
             MethodConfig::Filter(_) | MethodConfig::GradNet(_) => {}
         }
         self
     }
 
-    fn instantiate(
+    pub(crate) fn instantiate(
         &self,
         context: &Context,
         width: usize,
@@ -162,6 +175,7 @@ impl MethodConfig {
             MethodConfig::Filter(c) => Box::new(Filter::new(*c, width, height)?),
             #[cfg(feature = "gradnet")]
             MethodConfig::GradNet(c) => Box::new(GradNet::new(c.clone(), context, width, height)?),
+            MethodConfig::Auto(c) => Box::new(Auto::new(c.clone(), context, width, height)),
             #[cfg(not(feature = "gradnet"))]
             MethodConfig::GradNet(_) => {
                 let _ = context;

@@ -20,7 +20,9 @@ use std::time::Instant;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 
-use gdrecon::recon::{FilterConfig, FilterGuide, GradNetConfig, PoissonL1Config, PoissonL2Config};
+use gdrecon::recon::{
+    AutoConfig, FilterConfig, FilterGuide, GradNetConfig, PoissonL1Config, PoissonL2Config,
+};
 use gdrecon::{
     io, metrics, synth, Context, ContextOptions, Frame, Layer, Method, MethodConfig, Plan, Policy,
 };
@@ -94,8 +96,9 @@ enum L1Preset {
 /// Method selection and settings shared by `reconstruct` and `bench`.
 #[derive(Args, Clone, Debug)]
 pub(crate) struct MethodArgs {
-    /// Reconstruction method: l2, l1, filter or gradnet (the filter needs spp: from the file
-    /// or --spp; gradnet needs ONNX Runtime, see --onnxruntime).
+    /// Reconstruction method: l2, l1, filter, gradnet or auto (the filter needs spp: from the
+    /// file or --spp; gradnet needs ONNX Runtime, see --onnxruntime; auto picks one per frame
+    /// and prints why).
     #[arg(long, short, default_value = "l2")]
     method: String,
     /// Screened Poisson data weight (residual alpha (I - I_b)).
@@ -145,37 +148,52 @@ impl MethodArgs {
         let method: Method = self.method.parse()?;
         Ok(match method {
             Method::PoissonL2 => MethodConfig::PoissonL2(PoissonL2Config { alpha: self.alpha }),
-            Method::PoissonL1 => {
-                let mut c = match self.l1_preset {
-                    L1Preset::Fast => PoissonL1Config::default(),
-                    L1Preset::Published => PoissonL1Config::published(),
-                };
-                c.alpha = self.alpha;
-                c.reweight_steps = self.irls_steps.unwrap_or(c.reweight_steps);
-                c.cg_iterations = self.cg_iterations.unwrap_or(c.cg_iterations);
-                c.cg_tolerance = self.cg_tolerance.unwrap_or(c.cg_tolerance);
-                MethodConfig::PoissonL1(c)
-            }
-            Method::Filter => MethodConfig::Filter(FilterConfig {
-                radius: self.filter_radius,
-                levels: self.filter_levels,
-                guide: match self.filter_guide {
-                    GuideArg::Rdfc => FilterGuide::Rdfc,
-                    GuideArg::L1 => FilterGuide::PoissonL1,
-                },
-                ..FilterConfig::default()
-            }),
-            Method::GradNet => {
-                let mut c = GradNetConfig::default();
-                c.runtime = self.onnxruntime.clone();
-                c.model = self.model.clone();
-                c.tile_size = self.tile;
-                c.bias_correction = !self.no_bias_correction;
-                c.use_features = !self.no_features;
-                MethodConfig::GradNet(c)
+            Method::PoissonL1 => MethodConfig::PoissonL1(self.l1()),
+            Method::Filter => MethodConfig::Filter(self.filter()),
+            Method::GradNet => MethodConfig::GradNet(self.gradnet()),
+            Method::Auto => {
+                let mut c = AutoConfig::default();
+                c.filter = self.filter();
+                c.gradnet = self.gradnet();
+                c.l1 = self.l1();
+                MethodConfig::Auto(c)
             }
             other => MethodConfig::default_for(other).with_alpha(self.alpha),
         })
+    }
+
+    fn l1(&self) -> PoissonL1Config {
+        let mut c = match self.l1_preset {
+            L1Preset::Fast => PoissonL1Config::default(),
+            L1Preset::Published => PoissonL1Config::published(),
+        };
+        c.alpha = self.alpha;
+        c.reweight_steps = self.irls_steps.unwrap_or(c.reweight_steps);
+        c.cg_iterations = self.cg_iterations.unwrap_or(c.cg_iterations);
+        c.cg_tolerance = self.cg_tolerance.unwrap_or(c.cg_tolerance);
+        c
+    }
+
+    fn filter(&self) -> FilterConfig {
+        FilterConfig {
+            radius: self.filter_radius,
+            levels: self.filter_levels,
+            guide: match self.filter_guide {
+                GuideArg::Rdfc => FilterGuide::Rdfc,
+                GuideArg::L1 => FilterGuide::PoissonL1,
+            },
+            ..FilterConfig::default()
+        }
+    }
+
+    fn gradnet(&self) -> GradNetConfig {
+        let mut c = GradNetConfig::default();
+        c.runtime = self.onnxruntime.clone();
+        c.model = self.model.clone();
+        c.tile_size = self.tile;
+        c.bias_correction = !self.no_bias_correction;
+        c.use_features = !self.no_features;
+        c
     }
 }
 

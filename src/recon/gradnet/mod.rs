@@ -173,6 +173,42 @@ mod enabled {
         }
     }
 
+    /// Clamps `out` to `[0, max(I_b) + (W + H) max|g|]`: no image whose gradients are the
+    /// frame's can leave that range along any path from its brightest base pixel. Real frames
+    /// never reach it (it only catches a network output that invents light, e.g. on a flat
+    /// frame); returns how many values were clamped.
+    fn clamp_to_input_range(frame: &Frame, out: &mut Image) -> u64 {
+        let (w, h) = frame.size();
+        let colour_max = frame
+            .color()
+            .as_slice()
+            .iter()
+            .fold(0.0f32, |m, v| m.max(*v));
+        let mut grad_max = 0.0f32;
+        for c in 0..3 {
+            let (dx, dy) = (frame.dx().plane(c), frame.dy().plane(c));
+            for y in 0..h {
+                for x in 0..w {
+                    if x + 1 < w {
+                        grad_max = grad_max.max(dx[[y, x]].abs());
+                    }
+                    if y + 1 < h {
+                        grad_max = grad_max.max(dy[[y, x]].abs());
+                    }
+                }
+            }
+        }
+        let bound = colour_max + (w + h) as f32 * grad_max;
+        let mut clamped = 0;
+        for v in out.as_mut_slice() {
+            if *v > bound {
+                *v = bound;
+                clamped += 1;
+            }
+        }
+        clamped
+    }
+
     impl Reconstructor for GradNet {
         fn method(&self) -> Method {
             Method::GradNet
@@ -287,6 +323,12 @@ mod enabled {
                 report.time("bias correction", || bias::correct(out, frame.color()));
             } else {
                 report.skip("bias correction (disabled)");
+            }
+            let clamped = clamp_to_input_range(frame, out);
+            if clamped > 0 {
+                report.note(format!(
+                    "{clamped} output values above the input's range were clamped"
+                ));
             }
             progress.update(1.0)?;
             Ok(())
