@@ -313,7 +313,7 @@ fn lock(f: &gdr_filter) -> CResult<MutexGuard<'_, State>> {
     }
 }
 
-/// Create a filter running `method` (`"l2"`, `"l1"`, `"filter"`, `"gradnet"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
+/// Create a filter running `method` (`"l2"`, `"l1"`, `"filter"`, `"gradnet"`, `"auto"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_new(
     ctx: *mut gdr_context,
@@ -327,7 +327,12 @@ pub unsafe extern "C" fn gdr_filter_new(
         let method: Method = c_str(method, "method")?.parse()?;
         let pool = context.pool()?;
         let mut config = MethodConfig::default_for(method);
-        if let MethodConfig::GradNet(c) = &mut config {
+        let gradnet = match &mut config {
+            MethodConfig::GradNet(c) => Some(c),
+            MethodConfig::Auto(c) => Some(&mut c.gradnet),
+            _ => None,
+        };
+        if let Some(c) = gradnet {
             let (runtime, model) = context.gradnet_paths();
             c.runtime = runtime.map(Into::into);
             c.model = model.map(Into::into);
