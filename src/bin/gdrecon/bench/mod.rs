@@ -1,30 +1,60 @@
-//! `gdrecon bench`: median run time (and relMSE when a reference exists) per method and frame.
+//! `gdrecon bench`: run time against error, per method variant and frame.
 //!
-//! Planning (DCT plans, buffers) is done once per method and size and not timed, as a renderer
-//! would commit once and execute per frame. Times are medians over `--runs` executions after
-//! `--warmup` untimed ones; peak memory is the process's resident high-water mark (VmHWM)
-//! after the method ran, so run one method per process for per-method peaks.
+//! Planning (DCT plans, buffers, ONNX sessions) is done once per variant and frame size and not
+//! timed, as a renderer would commit once and execute per frame. Times are medians over
+//! `--runs` executions after `--warmup` untimed ones; relMSE is against the frame's reference;
+//! peak memory is the resident high-water mark (VmHWM), reset when each variant starts.
+//!
+//! Variants are methods at named settings (`l1:irls=5`, see [`variant`]); `--sweep` times each
+//! method's speed/quality variants, `--scales` times resized copies of the frames, and
+//! `--out-dir` writes the report: `results.csv`, `results.json`, `summary.md` and the Pareto
+//! plots `pareto.png` / `pareto.svg`.
 
-use std::path::PathBuf;
-use std::time::Instant;
+mod aggregate;
+mod frames;
+mod measure;
+mod plot;
+mod report;
+mod summary;
+mod variant;
+
+use std::path::{Path, PathBuf};
 
 use clap::Args;
 
-use gdrecon::{metrics, synth, Context, ContextOptions, Frame, Plan, Policy, Progress};
+use gdrecon::{Context, ContextOptions};
 
+use self::frames::BenchFrame;
+use self::measure::{Row, Schedule};
+use self::variant::Variant;
 use crate::MethodArgs;
 
+/// Arguments of `gdrecon bench`.
 #[derive(Args)]
 pub struct BenchArgs {
-    /// Frame bundles to time (any number).
+    /// Frame bundles to time (any number); `<scene>_<N>spp.exr` names give scene and spp.
     inputs: Vec<PathBuf>,
     /// Also time a synthetic frame of this size, e.g. 1280x720.
     #[arg(long)]
     synthetic: Option<String>,
-    /// Comma-separated methods.
+    /// Comma-separated methods (each at its default settings, or its variants with --sweep).
     #[arg(long, default_value = "l2,l1")]
     methods: String,
-    /// Timed runs per method and frame (the median is reported).
+    /// Time each method's speed/quality variants: l2; l1, l1:irls=5, l1:published; filter,
+    /// filter:levels=1, filter:guide=l1; gradnet, gradnet:nofeat, gradnet:nobias.
+    #[arg(long)]
+    sweep: bool,
+    /// Comma-separated variants METHOD[:OPTION...] instead of --methods, e.g.
+    /// `l2,l1:irls=5:tol=0,filter:guide=l1,gradnet:nofeat`. Options: l2 alpha=X; l1 alpha=X,
+    /// irls=N, cg=N, tol=X, published, fast; filter levels=N, radius=N, guide=rdfc|l1;
+    /// gradnet nofeat, nobias, tile=N.
+    #[arg(long, conflicts_with_all = ["sweep", "methods"])]
+    settings: Option<String>,
+    /// Also time every frame resized by these factors, e.g. 0.5,1,2 (nearest-neighbour; 1 is
+    /// the frame as read). relMSE is reported at factor 1 only.
+    #[arg(long)]
+    scales: Option<String>,
+    /// Timed runs per variant and frame (the median is reported).
     #[arg(long, default_value_t = 7)]
     runs: usize,
     /// Untimed runs first.
@@ -33,127 +63,190 @@ pub struct BenchArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
-    /// Write the table as CSV here too.
+    /// Write the table as CSV here too (one line per frame and variant).
     #[arg(long)]
     csv: Option<PathBuf>,
+    /// Write the report here: results.csv, results.json, summary.md, pareto.png, pareto.svg.
+    #[arg(long)]
+    out_dir: Option<PathBuf>,
     #[command(flatten)]
     method: MethodArgs,
 }
 
-fn parse_size(s: &str) -> gdrecon::Result<(usize, usize)> {
-    let bad = || gdrecon::Error::InvalidArgument(format!("--synthetic '{s}': expected WxH"));
-    let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
-    let (w, h) = (w.parse().map_err(|_| bad())?, h.parse().map_err(|_| bad())?);
-    if w == 0 || h == 0 {
-        return Err(bad());
-    }
-    Ok((w, h))
-}
-
-/// Peak resident memory of this process in MiB (Linux), if known.
-pub fn peak_rss_mib() -> Option<f64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb / 1024.0)
-}
-
+/// Runs `gdrecon bench`.
 pub fn run(args: BenchArgs) -> gdrecon::Result<()> {
     if args.runs == 0 {
         return Err(gdrecon::Error::InvalidArgument(
             "--runs must be at least 1".into(),
         ));
     }
-    let mut frames: Vec<(String, Frame)> = Vec::new();
-    for p in &args.inputs {
-        frames.push((
-            p.display().to_string(),
-            crate::load_frame(p, Policy::Replace, None)?,
+    let variants = variants(&args)?;
+    let scales = match &args.scales {
+        Some(list) => frames::parse_scales(list)?,
+        None => vec![1.0],
+    };
+    let frames = load_frames(&args)?;
+    let context = Context::new(ContextOptions {
+        threads: args.threads,
+    })?;
+    let schedule = Schedule {
+        warmup: args.warmup,
+        runs: args.runs,
+    };
+    print_header();
+    let rows = time_all(&context, &variants, &frames, &scales, schedule)?;
+    if let Some(csv) = &args.csv {
+        report::write(csv, &report::plain_csv(&rows))?;
+    }
+    if let Some(dir) = &args.out_dir {
+        write_report(dir, &args, context.threads(), &rows)?;
+    }
+    Ok(())
+}
+
+/// The variants to time, checked before any frame is read.
+fn variants(args: &BenchArgs) -> gdrecon::Result<Vec<Variant>> {
+    let names = match &args.settings {
+        Some(list) => variant::split_list(list).map(str::to_owned).collect(),
+        None => variant::names_for_methods(&args.methods, args.sweep)?,
+    };
+    if names.is_empty() {
+        return Err(gdrecon::Error::InvalidArgument(
+            "no method to time: --methods / --settings is empty".into(),
         ));
     }
-    if let Some(s) = &args.synthetic {
-        let (w, h) = parse_size(s)?;
-        frames.push((
-            format!("synthetic {w}x{h}"),
-            synth::synthetic_frame(w, h, 16.0, 1),
-        ));
+    names
+        .iter()
+        .map(|n| variant::parse(n, &args.method))
+        .collect()
+}
+
+/// The bundles named on the command line, then the synthetic frame.
+fn load_frames(args: &BenchArgs) -> gdrecon::Result<Vec<BenchFrame>> {
+    let mut frames = args
+        .inputs
+        .iter()
+        .map(|p| frames::load(p))
+        .collect::<gdrecon::Result<Vec<_>>>()?;
+    if let Some(spec) = &args.synthetic {
+        frames.push(frames::synthetic(spec)?);
     }
     if frames.is_empty() {
         return Err(gdrecon::Error::InvalidArgument(
             "nothing to time: give frame bundles or --synthetic WxH".into(),
         ));
     }
-    let context = Context::new(ContextOptions {
-        threads: args.threads,
-    })?;
-    let mut rows = vec![
-        "frame,method,width,height,threads,runs,median_s,min_s,max_s,rel_mse,peak_rss_mib"
-            .to_owned(),
-    ];
+    Ok(frames)
+}
+
+/// Times every variant on every frame at every scale (resized copies made one scale at a time).
+fn time_all(
+    context: &Context,
+    variants: &[Variant],
+    frames: &[BenchFrame],
+    scales: &[f64],
+    schedule: Schedule,
+) -> gdrecon::Result<Vec<Row>> {
+    let mut rows = Vec::new();
+    for &scale in scales {
+        let resized = if scale == 1.0 {
+            None
+        } else {
+            Some(
+                frames
+                    .iter()
+                    .map(|f| frames::resized(f, scale))
+                    .collect::<gdrecon::Result<Vec<_>>>()?,
+            )
+        };
+        let set = resized.as_deref().unwrap_or(frames);
+        for v in variants {
+            rows.extend(measure::time_variant(
+                context,
+                v,
+                set,
+                schedule,
+                &mut print_row,
+            )?);
+        }
+    }
+    Ok(rows)
+}
+
+/// The console table's header.
+fn print_header() {
     say!(
-        "{:<28} {:<6} {:>10} {:>10} {:>10} {:>12} {:>9}",
+        "{:<22} {:<18} {:>11} {:>9} {:>9} {:>9} {:>11} {:>8}",
         "frame",
-        "method",
+        "variant",
+        "size",
         "median s",
         "min s",
         "max s",
         "relMSE",
         "peak MiB"
     );
-    for (name, frame) in &frames {
-        for m in args
-            .methods
-            .split(',')
-            .map(str::trim)
-            .filter(|m| !m.is_empty())
-        {
-            let mut margs = args.method.clone();
-            margs.method = m.to_owned();
-            let config = margs.config()?;
-            let mut plan = Plan::new(&context, &config, frame.width(), frame.height())?;
-            let mut out = gdrecon::Image::zeros(3, frame.height(), frame.width());
-            for _ in 0..args.warmup {
-                plan.execute_into(frame, &mut out, &Progress::none())?;
-            }
-            let mut times = Vec::with_capacity(args.runs);
-            for _ in 0..args.runs {
-                let t = Instant::now();
-                plan.execute_into(frame, &mut out, &Progress::none())?;
-                times.push(t.elapsed().as_secs_f64());
-            }
-            times.sort_by(f64::total_cmp);
-            let median = times[times.len() / 2];
-            let rel = match frame.reference() {
-                Some(r) => format!("{:.5e}", metrics::compare(&out, r)?.rel_mse),
-                None => "-".to_owned(),
-            };
-            let peak = peak_rss_mib().map_or_else(|| "-".to_owned(), |p| format!("{p:.0}"));
-            say!(
-                "{:<28} {:<6} {:>10.4} {:>10.4} {:>10.4} {:>12} {:>9}",
-                name,
-                m,
-                median,
-                times[0],
-                times[times.len() - 1],
-                rel,
-                peak
-            );
-            rows.push(format!(
-                "{name},{m},{},{},{},{},{median:.6},{:.6},{:.6},{rel},{peak}",
-                frame.width(),
-                frame.height(),
-                context.threads(),
-                args.runs,
-                times[0],
-                times[times.len() - 1]
-            ));
-        }
-    }
-    if let Some(csv) = &args.csv {
-        std::fs::write(csv, rows.join("\n") + "\n").map_err(|source| gdrecon::Error::Io {
-            path: csv.clone(),
-            source,
-        })?;
-    }
+}
+
+/// One console line.
+fn print_row(r: &Row) {
+    say!(
+        "{:<22} {:<18} {:>11} {:>9.4} {:>9.4} {:>9.4} {:>11} {:>8}",
+        r.frame,
+        r.variant,
+        format!("{}x{}", r.width, r.height),
+        r.median_s,
+        r.min_s,
+        r.max_s,
+        r.rel_mse
+            .map_or_else(|| "-".to_owned(), |v| format!("{v:.5e}")),
+        r.peak_rss_mib
+            .map_or_else(|| "-".to_owned(), |p| format!("{p:.0}"))
+    );
+}
+
+/// Writes the five report files into `dir` (created if needed).
+fn write_report(dir: &Path, args: &BenchArgs, threads: usize, rows: &[Row]) -> gdrecon::Result<()> {
+    std::fs::create_dir_all(dir).map_err(|source| gdrecon::Error::Io {
+        path: dir.to_owned(),
+        source,
+    })?;
+    let panels = aggregate::panels(rows);
+    let header = summary::Header {
+        command: command_line(&args.inputs),
+        threads,
+        runs: args.runs,
+        warmup: args.warmup,
+    };
+    report::write(&dir.join("results.csv"), &report::csv(rows))?;
+    report::write(&dir.join("results.json"), &report::json(rows))?;
+    report::write(
+        &dir.join("summary.md"),
+        &summary::markdown(&header, rows, &panels),
+    )?;
+    plot::write(&dir.join("pareto.png"), &dir.join("pareto.svg"), &panels)?;
+    say!(
+        "wrote {}/{{results.csv, results.json, summary.md, pareto.png, pareto.svg}}",
+        dir.display()
+    );
     Ok(())
+}
+
+/// This process's command line, with frame paths shortened to their file names.
+fn command_line(inputs: &[PathBuf]) -> String {
+    let words: Vec<String> = std::env::args_os()
+        .skip(1)
+        .map(|a| {
+            let path = Path::new(&a);
+            if inputs.iter().any(|i| i.as_os_str() == a) {
+                path.file_name()
+                    .unwrap_or(&a)
+                    .to_string_lossy()
+                    .into_owned()
+            } else {
+                a.to_string_lossy().into_owned()
+            }
+        })
+        .collect();
+    format!("gdrecon {}", words.join(" "))
 }

@@ -1,0 +1,160 @@
+//! Per-spp aggregates over scenes and the Pareto front, shared by the summary and the plot.
+
+use super::measure::Row;
+
+/// One variant at one spp, over the scenes.
+#[derive(Clone, Debug)]
+pub struct Point {
+    /// Variant label.
+    pub variant: String,
+    /// Method name (for colours).
+    pub method: String,
+    /// Geometric mean of relMSE over the frames.
+    pub rel_mse: f64,
+    /// Median over the frames of each frame's median seconds.
+    pub seconds: f64,
+    /// Frames (scenes) averaged.
+    pub frames: usize,
+    /// No other variant is at least as good in both and better in one.
+    pub pareto: bool,
+}
+
+/// All variants at one spp, sorted by relMSE.
+#[derive(Clone, Debug)]
+pub struct Panel {
+    /// Samples per pixel.
+    pub spp: f32,
+    /// The variants.
+    pub points: Vec<Point>,
+}
+
+/// Groups the original-size rows with a relMSE and a known spp by spp (ascending).
+pub fn panels(rows: &[Row]) -> Vec<Panel> {
+    let usable: Vec<&Row> = rows
+        .iter()
+        .filter(|r| r.scale == 1.0 && r.rel_mse.is_some() && r.spp.is_some())
+        .collect();
+    let mut spps: Vec<f32> = usable.iter().filter_map(|r| r.spp).collect();
+    spps.sort_by(f32::total_cmp);
+    spps.dedup();
+    spps.into_iter()
+        .map(|spp| {
+            let at_spp: Vec<&Row> = usable
+                .iter()
+                .copied()
+                .filter(|r| r.spp == Some(spp))
+                .collect();
+            Panel {
+                spp,
+                points: points(&at_spp),
+            }
+        })
+        .collect()
+}
+
+/// One point per variant (in first-seen order), marked and sorted by relMSE.
+fn points(rows: &[&Row]) -> Vec<Point> {
+    let mut variants: Vec<&str> = Vec::new();
+    for r in rows {
+        if !variants.contains(&r.variant.as_str()) {
+            variants.push(&r.variant);
+        }
+    }
+    let mut points: Vec<Point> = variants
+        .into_iter()
+        .map(|v| {
+            let of: Vec<&Row> = rows.iter().copied().filter(|r| r.variant == v).collect();
+            let errors: Vec<f64> = of.iter().filter_map(|r| r.rel_mse).collect();
+            let mut secs: Vec<f64> = of.iter().map(|r| r.median_s).collect();
+            secs.sort_by(f64::total_cmp);
+            Point {
+                variant: v.to_owned(),
+                method: of[0].method.clone(),
+                rel_mse: geometric_mean(&errors),
+                seconds: middle(&secs),
+                frames: of.len(),
+                pareto: false,
+            }
+        })
+        .collect();
+    mark_pareto(&mut points);
+    points.sort_by(|a, b| a.rel_mse.total_cmp(&b.rel_mse));
+    points
+}
+
+/// Geometric mean of positive values (0 if any is 0).
+pub fn geometric_mean(values: &[f64]) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    (values.iter().map(|v| v.ln()).sum::<f64>() / values.len() as f64).exp()
+}
+
+/// The median of sorted values (mean of the two middle ones for an even count).
+pub fn middle(sorted: &[f64]) -> f64 {
+    let n = sorted.len();
+    if n == 0 {
+        f64::NAN
+    } else if n % 2 == 1 {
+        sorted[n / 2]
+    } else {
+        0.5 * (sorted[n / 2 - 1] + sorted[n / 2])
+    }
+}
+
+/// Marks the points that no other point dominates (lower or equal error and time, one lower).
+pub fn mark_pareto(points: &mut [Point]) {
+    let dominated: Vec<bool> = points
+        .iter()
+        .map(|p| {
+            points.iter().any(|q| {
+                q.rel_mse <= p.rel_mse
+                    && q.seconds <= p.seconds
+                    && (q.rel_mse < p.rel_mse || q.seconds < p.seconds)
+            })
+        })
+        .collect();
+    for (p, d) in points.iter_mut().zip(dominated) {
+        p.pareto = !d;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn point(name: &str, rel_mse: f64, seconds: f64) -> Point {
+        Point {
+            variant: name.into(),
+            method: name.into(),
+            rel_mse,
+            seconds,
+            frames: 1,
+            pareto: false,
+        }
+    }
+
+    #[test]
+    fn pareto_front_keeps_the_undominated() {
+        let mut p = vec![
+            point("fast", 3.0, 0.1),
+            point("good", 1.0, 5.0),
+            point("slow-bad", 3.0, 6.0),
+            point("middle", 2.0, 1.0),
+            point("tie-worse", 2.0, 1.5),
+        ];
+        mark_pareto(&mut p);
+        let front: Vec<&str> = p
+            .iter()
+            .filter(|p| p.pareto)
+            .map(|p| p.variant.as_str())
+            .collect();
+        assert_eq!(front, ["fast", "good", "middle"]);
+    }
+
+    #[test]
+    fn means() {
+        assert!((geometric_mean(&[1e-2, 1e-4]) - 1e-3).abs() < 1e-12);
+        assert_eq!(middle(&[1.0, 2.0, 4.0, 8.0]), 3.0);
+    }
+}

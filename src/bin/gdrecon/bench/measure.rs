@@ -1,0 +1,169 @@
+//! Timing one planned variant on frames, and the process's peak memory.
+
+use std::time::Instant;
+
+use gdrecon::{metrics, Context, Image, Plan, Progress};
+
+use super::frames::BenchFrame;
+use super::variant::Variant;
+
+/// One timed variant on one frame: a line of the report.
+#[derive(Clone, Debug)]
+pub struct Row {
+    /// Display name of the frame.
+    pub frame: String,
+    /// Scene name.
+    pub scene: String,
+    /// Samples per pixel, when known.
+    pub spp: Option<f32>,
+    /// Method name.
+    pub method: String,
+    /// Variant setting (`default`, `irls=5`).
+    pub setting: String,
+    /// Variant label (`l1`, `l1:irls=5`).
+    pub variant: String,
+    /// Size factor against the frame as read.
+    pub scale: f64,
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// Worker threads.
+    pub threads: usize,
+    /// Timed runs.
+    pub runs: usize,
+    /// Median seconds per run.
+    pub median_s: f64,
+    /// Fastest run.
+    pub min_s: f64,
+    /// Slowest run.
+    pub max_s: f64,
+    /// relMSE against the frame's reference (original size only).
+    pub rel_mse: Option<f64>,
+    /// Peak resident memory since the variant started, MiB.
+    pub peak_rss_mib: Option<f64>,
+}
+
+impl Row {
+    /// Pixels per frame.
+    pub fn pixels(&self) -> usize {
+        self.width * self.height
+    }
+}
+
+/// How many runs to do.
+#[derive(Clone, Copy, Debug)]
+pub struct Schedule {
+    /// Untimed runs first.
+    pub warmup: usize,
+    /// Timed runs.
+    pub runs: usize,
+}
+
+/// Plans `variant` once per frame size (not timed) and times it on every frame.
+///
+/// `on_row` receives each row as soon as it is measured (for live printing).
+pub fn time_variant(
+    context: &Context,
+    variant: &Variant,
+    frames: &[BenchFrame],
+    schedule: Schedule,
+    on_row: &mut dyn FnMut(&Row),
+) -> gdrecon::Result<Vec<Row>> {
+    reset_peak_rss();
+    let mut rows = Vec::with_capacity(frames.len());
+    for size in distinct_sizes(frames) {
+        let mut plan = Plan::new(context, &variant.config, size.0, size.1)?;
+        let mut out = Image::zeros(3, size.1, size.0);
+        for f in frames.iter().filter(|f| f.frame.size() == size) {
+            let times = time_runs(&mut plan, f, &mut out, schedule)?;
+            let rel_mse = match (f.frame.reference(), f.scale == 1.0) {
+                (Some(r), true) => Some(metrics::compare(&out, r)?.rel_mse),
+                _ => None,
+            };
+            let row = make_row(variant, f, context.threads(), &times, rel_mse);
+            on_row(&row);
+            rows.push(row);
+        }
+    }
+    Ok(rows)
+}
+
+/// The frame sizes in first-seen order.
+fn distinct_sizes(frames: &[BenchFrame]) -> Vec<(usize, usize)> {
+    let mut sizes: Vec<(usize, usize)> = Vec::new();
+    for f in frames {
+        if !sizes.contains(&f.frame.size()) {
+            sizes.push(f.frame.size());
+        }
+    }
+    sizes
+}
+
+/// Warm-up runs, then the timed runs' seconds, sorted.
+fn time_runs(
+    plan: &mut Plan,
+    f: &BenchFrame,
+    out: &mut Image,
+    schedule: Schedule,
+) -> gdrecon::Result<Vec<f64>> {
+    for _ in 0..schedule.warmup {
+        plan.execute_into(&f.frame, out, &Progress::none())?;
+    }
+    let mut times = Vec::with_capacity(schedule.runs);
+    for _ in 0..schedule.runs {
+        let t = Instant::now();
+        plan.execute_into(&f.frame, out, &Progress::none())?;
+        times.push(t.elapsed().as_secs_f64());
+    }
+    times.sort_by(f64::total_cmp);
+    Ok(times)
+}
+
+/// A report row from sorted run times.
+fn make_row(
+    variant: &Variant,
+    f: &BenchFrame,
+    threads: usize,
+    times: &[f64],
+    rel_mse: Option<f64>,
+) -> Row {
+    Row {
+        frame: f.name.clone(),
+        scene: f.scene.clone(),
+        spp: f.spp,
+        method: variant.method.clone(),
+        setting: variant.setting.clone(),
+        variant: variant.label(),
+        scale: f.scale,
+        width: f.frame.width(),
+        height: f.frame.height(),
+        threads,
+        runs: times.len(),
+        median_s: median(times),
+        min_s: times[0],
+        max_s: times[times.len() - 1],
+        rel_mse,
+        peak_rss_mib: peak_rss_mib(),
+    }
+}
+
+/// The median of sorted values (upper middle for an even count, as `bench` always reported).
+pub fn median(sorted: &[f64]) -> f64 {
+    sorted[sorted.len() / 2]
+}
+
+/// Peak resident memory of this process in MiB (Linux), if known.
+pub fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}
+
+/// Resets the peak to the current resident size (Linux 4.0+: `5` to `/proc/self/clear_refs`),
+/// so each variant's peak is its own, plus the frames already in memory. Where that fails the
+/// peak stays the process's high-water mark.
+pub fn reset_peak_rss() {
+    let _ = std::fs::write("/proc/self/clear_refs", "5");
+}

@@ -1,0 +1,236 @@
+//! `pareto.png` and `pareto.svg`: relMSE against median seconds, log-log, one panel per spp.
+//!
+//! Text is drawn with DejaVu Sans compiled into the binary (plotters' `ab_glyph` path), so
+//! neither system fonts nor fontconfig are needed. The PNG is rendered into a buffer and
+//! encoded with the `png` crate the library already uses.
+
+use std::path::Path;
+use std::sync::OnceLock;
+
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use plotters::style::{register_font, FontStyle};
+
+use super::aggregate::{Panel, Point};
+
+/// Pixels per panel, and the height.
+const PANEL_WIDTH: u32 = 560;
+const HEIGHT: u32 = 500;
+/// The font family every text uses.
+const FONT: &str = "sans-serif";
+
+/// Writes both plots to `png` and `svg`.
+pub fn write(png: &Path, svg: &Path, panels: &[Panel]) -> gdrecon::Result<()> {
+    register_dejavu().map_err(|e| plot_error(png, e))?;
+    let size = (PANEL_WIDTH * panels.len().max(1) as u32, HEIGHT);
+    let mut pixels = vec![0u8; size.0 as usize * size.1 as usize * 3];
+    {
+        let root = BitMapBackend::with_buffer(&mut pixels, size).into_drawing_area();
+        draw(&root, panels).map_err(|e| plot_error(png, e.to_string()))?;
+    }
+    encode_png(png, &pixels, size)?;
+    let mut text = String::new();
+    {
+        let root = SVGBackend::with_string(&mut text, size).into_drawing_area();
+        draw(&root, panels).map_err(|e| plot_error(svg, e.to_string()))?;
+    }
+    super::report::write(svg, &text)
+}
+
+/// A plotting failure as an error naming the file.
+fn plot_error(path: &Path, message: String) -> gdrecon::Error {
+    gdrecon::Error::Io {
+        path: path.to_owned(),
+        source: std::io::Error::other(format!("drawing the plot failed: {message}")),
+    }
+}
+
+/// Registers the bundled font once.
+fn register_dejavu() -> Result<(), String> {
+    static DONE: OnceLock<bool> = OnceLock::new();
+    let ok = *DONE
+        .get_or_init(|| register_font(FONT, FontStyle::Normal, dejavu::sans::regular()).is_ok());
+    ok.then_some(())
+        .ok_or_else(|| "the bundled DejaVu Sans font did not load".to_owned())
+}
+
+/// Encodes an RGB8 buffer as PNG.
+fn encode_png(path: &Path, pixels: &[u8], (w, h): (u32, u32)) -> gdrecon::Result<()> {
+    let io = |source| gdrecon::Error::Io {
+        path: path.to_owned(),
+        source,
+    };
+    let file = std::fs::File::create(path).map_err(io)?;
+    let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), w, h);
+    encoder.set_color(png::ColorType::Rgb);
+    encoder.set_depth(png::BitDepth::Eight);
+    let as_io = |e: png::EncodingError| match e {
+        png::EncodingError::IoError(source) => io(source),
+        other => io(std::io::Error::other(other.to_string())),
+    };
+    let mut writer = encoder.write_header().map_err(as_io)?;
+    writer.write_image_data(pixels).map_err(as_io)?;
+    writer.finish().map_err(as_io)
+}
+
+/// The error type of drawing on backend `DB`.
+type DrawResult<DB> = Result<(), DrawingAreaErrorKind<<DB as DrawingBackend>::ErrorType>>;
+
+/// Draws every panel side by side (or a note when there is nothing to plot).
+fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, panels: &[Panel]) -> DrawResult<DB> {
+    root.fill(&WHITE)?;
+    if panels.is_empty() {
+        root.draw(&Text::new(
+            "nothing to plot: no frame with a reference and a known spp",
+            (20, 20),
+            (FONT, 16),
+        ))?;
+    }
+    for (area, panel) in root
+        .split_evenly((1, panels.len().max(1)))
+        .iter()
+        .zip(panels)
+    {
+        draw_panel(area, panel)?;
+    }
+    root.present()
+}
+
+/// One spp: the variants' points, labelled, coloured by method, and the Pareto front.
+fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, panel: &Panel) -> DrawResult<DB> {
+    let (x0, x1) = log_bounds(panel.points.iter().map(|p| p.seconds));
+    let (y0, y1) = log_bounds(panel.points.iter().map(|p| p.rel_mse));
+    let mut chart = ChartBuilder::on(area)
+        .caption(format!("{} spp", panel.spp), (FONT, 20))
+        .margin(14)
+        .x_label_area_size(44)
+        .y_label_area_size(64)
+        .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())?;
+    chart
+        .configure_mesh()
+        .x_desc("median seconds per frame")
+        .y_desc("relMSE, geometric mean over scenes")
+        .x_label_formatter(&|v| {
+            if round_tick(*v) {
+                tick(*v)
+            } else {
+                String::new()
+            }
+        })
+        .y_label_formatter(&|v| {
+            if round_tick(*v) {
+                format!("{v:.0e}")
+            } else {
+                String::new()
+            }
+        })
+        .label_style((FONT, 12))
+        .axis_desc_style((FONT, 14))
+        .light_line_style(WHITE)
+        .draw()?;
+    let grey = BLACK.mix(0.45);
+    chart
+        .draw_series(LineSeries::new(front(&panel.points), grey.stroke_width(1)))?
+        .label("Pareto front (filled)")
+        .legend(move |(x, y)| PathElement::new(vec![(x - 8, y), (x + 8, y)], grey));
+    for method in methods(&panel.points) {
+        let color = method_color(&method);
+        let of = panel.points.iter().filter(|p| p.method == method);
+        chart
+            .draw_series(of.map(|p| {
+                EmptyElement::at((p.seconds, p.rel_mse))
+                    + Circle::new((0, 0), 5, marker_style(p, color))
+                    + Text::new(p.variant.clone(), (8, -6), (FONT, 12).into_font())
+            }))?
+            .label(method)
+            .legend(move |(x, y)| Circle::new((x, y), 5, color.filled()));
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
+        .label_font((FONT, 13))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK.mix(0.4))
+        .draw()
+}
+
+/// A point's marker: filled on the Pareto front, hollow otherwise.
+fn marker_style(p: &Point, color: RGBColor) -> ShapeStyle {
+    if p.pareto {
+        color.filled()
+    } else {
+        color.stroke_width(2)
+    }
+}
+
+/// The Pareto points by increasing time.
+fn front(points: &[Point]) -> Vec<(f64, f64)> {
+    let mut front: Vec<(f64, f64)> = points
+        .iter()
+        .filter(|p| p.pareto)
+        .map(|p| (p.seconds, p.rel_mse))
+        .collect();
+    front.sort_by(|a, b| a.0.total_cmp(&b.0));
+    front
+}
+
+/// Methods in first-seen order.
+fn methods(points: &[Point]) -> Vec<String> {
+    let mut out: Vec<String> = Vec::new();
+    for p in points {
+        if !out.contains(&p.method) {
+            out.push(p.method.clone());
+        }
+    }
+    out
+}
+
+/// A fixed colour per method.
+fn method_color(method: &str) -> RGBColor {
+    match method {
+        "l2" => RGBColor(31, 119, 180),
+        "l1" => RGBColor(44, 160, 44),
+        "filter" => RGBColor(214, 39, 40),
+        "gradnet" => RGBColor(148, 103, 189),
+        _ => RGBColor(90, 90, 90),
+    }
+}
+
+/// A log axis range around positive values, with room for labels.
+fn log_bounds(values: impl Iterator<Item = f64>) -> (f64, f64) {
+    let (lo, hi) = values
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .fold((f64::INFINITY, 0.0f64), |(lo, hi), v| {
+            (lo.min(v), hi.max(v))
+        });
+    if !lo.is_finite() {
+        return (0.1, 10.0);
+    }
+    (lo / 1.6, hi * 2.5)
+}
+
+/// Whether a log-axis tick is 1, 2 or 5 times a power of ten (only those are labelled).
+fn round_tick(v: f64) -> bool {
+    if !(v.is_finite() && v > 0.0) {
+        return false;
+    }
+    let mantissa = v / 10f64.powf(v.log10().floor());
+    [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .any(|m| (mantissa - m).abs() < 1e-6 * m)
+}
+
+/// An axis tick value: up to two significant digits, no trailing zeros.
+fn tick(v: f64) -> String {
+    if v >= 10.0 {
+        format!("{v:.0}")
+    } else {
+        let digits = (1 - v.log10().floor() as i32).max(0) as usize;
+        let s = format!("{v:.digits$}");
+        if s.contains('.') {
+            s.trim_end_matches('0').trim_end_matches('.').to_owned()
+        } else {
+            s
+        }
+    }
+}

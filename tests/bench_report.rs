@@ -1,0 +1,91 @@
+//! `gdrecon bench --sweep --out-dir`: the report files on a tiny synthetic frame.
+
+use assert_cmd::Command;
+
+/// The CLI under test.
+fn gdrecon() -> Command {
+    Command::cargo_bin("gdrecon").unwrap()
+}
+
+#[test]
+fn sweep_writes_every_report_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("report");
+    let output = gdrecon()
+        .args([
+            "bench",
+            "--synthetic",
+            "48x32",
+            "--methods",
+            "l2,l1",
+            "--sweep",
+            "--runs",
+            "1",
+            "--warmup",
+            "0",
+            "--out-dir",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    for file in [
+        "results.csv",
+        "results.json",
+        "summary.md",
+        "pareto.png",
+        "pareto.svg",
+    ] {
+        let meta = std::fs::metadata(out.join(file)).unwrap_or_else(|e| panic!("{file}: {e}"));
+        assert!(meta.len() > 0, "{file} is empty");
+    }
+    let csv = std::fs::read_to_string(out.join("results.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(
+        lines.next().unwrap(),
+        "scene,spp,method,setting,scale,width,height,pixels,threads,runs,median_s,min_s,max_s,\
+         rel_mse,peak_rss_mib"
+    );
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    let variants: Vec<(&str, &str)> = rows.iter().map(|r| (r[2], r[3])).collect();
+    assert_eq!(
+        variants,
+        [
+            ("l2", "default"),
+            ("l1", "default"),
+            ("l1", "irls=5"),
+            ("l1", "published")
+        ]
+    );
+    for r in &rows {
+        assert_eq!(r.len(), 15, "{r:?}");
+        assert_eq!((r[0], r[1], r[5], r[6]), ("synthetic", "16", "48", "32"));
+        let rel: f64 = r[13].parse().unwrap();
+        assert!(rel > 0.0 && rel < 1.0, "{r:?}");
+    }
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(summary.contains("## 16 spp"), "{summary}");
+    assert!(summary.contains("**yes**"), "{summary}");
+    let png = std::fs::read(out.join("pareto.png")).unwrap();
+    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+    let svg = std::fs::read_to_string(out.join("pareto.svg")).unwrap();
+    assert!(svg.contains("<svg") && svg.contains("l1:published"));
+}
+
+#[test]
+fn unknown_variant_is_named_in_the_error() {
+    let output = gdrecon()
+        .args(["bench", "--synthetic", "8x8", "--settings", "l2,l1:fastest"])
+        .output()
+        .unwrap();
+    assert_eq!(output.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        err.contains("variant 'l1:fastest'") && err.contains("irls=N"),
+        "{err}"
+    );
+}
