@@ -69,6 +69,9 @@ pub struct BenchArgs {
     /// Write the report here: results.csv, results.json, summary.md, pareto.png, pareto.svg.
     #[arg(long)]
     out_dir: Option<PathBuf>,
+    /// Heading of summary.md.
+    #[arg(long, default_value = "gdrecon bench")]
+    title: String,
     #[command(flatten)]
     method: MethodArgs,
 }
@@ -93,13 +96,23 @@ pub fn run(args: BenchArgs) -> gdrecon::Result<()> {
         warmup: args.warmup,
         runs: args.runs,
     };
+    let load_before = summary::load_average();
     print_header();
     let rows = time_all(&context, &variants, &frames, &scales, schedule)?;
     if let Some(csv) = &args.csv {
         report::write(csv, &report::plain_csv(&rows))?;
     }
     if let Some(dir) = &args.out_dir {
-        write_report(dir, &args, context.threads(), &rows)?;
+        let header = summary::Header {
+            title: args.title.clone(),
+            command: command_line(&args.inputs),
+            threads: context.threads(),
+            runs: args.runs,
+            warmup: args.warmup,
+            load_before,
+            load_after: summary::load_average(),
+        };
+        write_report(dir, &header, &rows)?;
     }
     Ok(())
 }
@@ -206,23 +219,17 @@ fn print_row(r: &Row) {
 }
 
 /// Writes the five report files into `dir` (created if needed).
-fn write_report(dir: &Path, args: &BenchArgs, threads: usize, rows: &[Row]) -> gdrecon::Result<()> {
+fn write_report(dir: &Path, header: &summary::Header, rows: &[Row]) -> gdrecon::Result<()> {
     std::fs::create_dir_all(dir).map_err(|source| gdrecon::Error::Io {
         path: dir.to_owned(),
         source,
     })?;
     let panels = aggregate::panels(rows);
-    let header = summary::Header {
-        command: command_line(&args.inputs),
-        threads,
-        runs: args.runs,
-        warmup: args.warmup,
-    };
     report::write(&dir.join("results.csv"), &report::csv(rows))?;
     report::write(&dir.join("results.json"), &report::json(rows))?;
     report::write(
         &dir.join("summary.md"),
-        &summary::markdown(&header, rows, &panels),
+        &summary::markdown(header, rows, &panels),
     )?;
     plot::write(&dir.join("pareto.png"), &dir.join("pareto.svg"), &panels)?;
     say!(

@@ -13,16 +13,22 @@ use plotters::style::{register_font, FontStyle};
 
 use super::aggregate::{Panel, Point};
 
-/// Pixels per panel, and the height.
+/// Pixels per panel.
 const PANEL_WIDTH: u32 = 560;
-const HEIGHT: u32 = 500;
+/// Height of the panels.
+const PANEL_HEIGHT: u32 = 480;
+/// Height of the legend strip under the panels.
+const LEGEND_HEIGHT: u32 = 40;
 /// The font family every text uses.
 const FONT: &str = "sans-serif";
 
 /// Writes both plots to `png` and `svg`.
 pub fn write(png: &Path, svg: &Path, panels: &[Panel]) -> gdrecon::Result<()> {
     register_dejavu().map_err(|e| plot_error(png, e))?;
-    let size = (PANEL_WIDTH * panels.len().max(1) as u32, HEIGHT);
+    let size = (
+        PANEL_WIDTH * panels.len().max(1) as u32,
+        PANEL_HEIGHT + LEGEND_HEIGHT,
+    );
     let mut pixels = vec![0u8; size.0 as usize * size.1 as usize * 3];
     {
         let root = BitMapBackend::with_buffer(&mut pixels, size).into_drawing_area();
@@ -86,14 +92,39 @@ fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, panels: &[Panel]) -> 
             (FONT, 16),
         ))?;
     }
-    for (area, panel) in root
+    let (top, bottom) = root.split_vertically(PANEL_HEIGHT);
+    for (area, panel) in top
         .split_evenly((1, panels.len().max(1)))
         .iter()
         .zip(panels)
     {
         draw_panel(area, panel)?;
     }
+    draw_legend(&bottom, panels)?;
     root.present()
+}
+
+/// The legend strip: one colour per method, then what filled, hollow and the line mean.
+fn draw_legend<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    panels: &[Panel],
+) -> DrawResult<DB> {
+    let all: Vec<Point> = panels.iter().flat_map(|p| p.points.clone()).collect();
+    let y = (LEGEND_HEIGHT / 2) as i32;
+    let mut x = 70;
+    for method in methods(&all) {
+        area.draw(&Circle::new((x, y), 5, method_color(&method).filled()))?;
+        area.draw(&Text::new(method.clone(), (x + 10, y - 8), (FONT, 14)))?;
+        x += 30 + 9 * method.len() as i32;
+    }
+    let grey = BLACK.mix(0.45);
+    area.draw(&PathElement::new(vec![(x, y), (x + 24, y)], grey))?;
+    area.draw(&Text::new(
+        "Pareto front: filled points (no other variant is both faster and more accurate); \
+         hollow: dominated",
+        (x + 32, y - 8),
+        (FONT, 14),
+    ))
 }
 
 /// One spp: the variants' points, labelled, coloured by method, and the Pareto front.
@@ -105,53 +136,58 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, panel: &Panel) 
         .margin(14)
         .x_label_area_size(44)
         .y_label_area_size(64)
-        .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())?;
+        .build_cartesian_2d(
+            (x0..x1).log_scale().with_key_points(key_points(x0, x1)),
+            (y0..y1).log_scale().with_key_points(key_points(y0, y1)),
+        )?;
     chart
         .configure_mesh()
         .x_desc("median seconds per frame")
         .y_desc("relMSE, geometric mean over scenes")
-        .x_label_formatter(&|v| {
-            if round_tick(*v) {
-                tick(*v)
-            } else {
-                String::new()
-            }
-        })
-        .y_label_formatter(&|v| {
-            if round_tick(*v) {
-                format!("{v:.0e}")
-            } else {
-                String::new()
-            }
-        })
+        .x_label_formatter(&|v| tick(*v))
+        .y_label_formatter(&|v| format!("{v:.0e}"))
         .label_style((FONT, 12))
         .axis_desc_style((FONT, 14))
         .light_line_style(WHITE)
         .draw()?;
     let grey = BLACK.mix(0.45);
-    chart
-        .draw_series(LineSeries::new(front(&panel.points), grey.stroke_width(1)))?
-        .label("Pareto front (filled)")
-        .legend(move |(x, y)| PathElement::new(vec![(x - 8, y), (x + 8, y)], grey));
-    for method in methods(&panel.points) {
-        let color = method_color(&method);
-        let of = panel.points.iter().filter(|p| p.method == method);
-        chart
-            .draw_series(of.map(|p| {
-                EmptyElement::at((p.seconds, p.rel_mse))
-                    + Circle::new((0, 0), 5, marker_style(p, color))
-                    + Text::new(p.variant.clone(), (8, -6), (FONT, 12).into_font())
-            }))?
-            .label(method)
-            .legend(move |(x, y)| Circle::new((x, y), 5, color.filled()));
-    }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .label_font((FONT, 13))
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK.mix(0.4))
-        .draw()
+    chart.draw_series(LineSeries::new(front(&panel.points), grey.stroke_width(1)))?;
+    let shifts = label_shifts(&panel.points, (x0, x1), (y0, y1));
+    chart.draw_series(panel.points.iter().zip(shifts).map(|(p, shift)| {
+        EmptyElement::at((p.seconds, p.rel_mse))
+            + Circle::new((0, 0), 5, marker_style(p, method_color(&p.method)))
+            + Text::new(p.variant.clone(), (8, shift - 6), (FONT, 12).into_font())
+    }))?;
+    Ok(())
+}
+
+/// Vertical pixel offsets for the point labels: a label whose point is close to earlier ones
+/// moves down one line per such neighbour, so names of near-identical points stay readable.
+fn label_shifts(points: &[Point], x: (f64, f64), y: (f64, f64)) -> Vec<i32> {
+    let span = |(lo, hi): (f64, f64)| (hi / lo).ln();
+    let near = |a: &Point, b: &Point| {
+        (a.seconds / b.seconds).ln().abs() < 0.12 * span(x)
+            && (a.rel_mse / b.rel_mse).ln().abs() < 0.04 * span(y)
+    };
+    (0..points.len())
+        .map(|i| 13 * points[..i].iter().filter(|q| near(q, &points[i])).count() as i32)
+        .collect()
+}
+
+/// Tick values inside `lo..hi`: 1, 2 and 5 times the powers of ten, or 1 and 3, or only the
+/// powers, the wider the range.
+fn key_points(lo: f64, hi: f64) -> Vec<f64> {
+    let first = lo.log10().floor() as i32;
+    let last = hi.log10().ceil() as i32;
+    let mantissas: &[f64] = match (hi / lo).log10() {
+        d if d <= 1.5 => &[1.0, 2.0, 5.0],
+        d if d <= 3.0 => &[1.0, 3.0],
+        _ => &[1.0],
+    };
+    (first..=last)
+        .flat_map(|e| mantissas.iter().map(move |m| m * 10f64.powi(e)))
+        .filter(|v| (lo..=hi).contains(v))
+        .collect()
 }
 
 /// A point's marker: filled on the Pareto front, hollow otherwise.
@@ -174,7 +210,7 @@ fn front(points: &[Point]) -> Vec<(f64, f64)> {
     front
 }
 
-/// Methods in first-seen order.
+/// The methods present, in the CLI's order (unknown names last, as first seen).
 fn methods(points: &[Point]) -> Vec<String> {
     let mut out: Vec<String> = Vec::new();
     for p in points {
@@ -182,6 +218,8 @@ fn methods(points: &[Point]) -> Vec<String> {
             out.push(p.method.clone());
         }
     }
+    let rank = |m: &String| gdrecon::Method::ALL.iter().position(|k| k.name() == m);
+    out.sort_by_key(|m| rank(m).unwrap_or(usize::MAX));
     out
 }
 
@@ -207,17 +245,6 @@ fn log_bounds(values: impl Iterator<Item = f64>) -> (f64, f64) {
         return (0.1, 10.0);
     }
     (lo / 1.6, hi * 2.5)
-}
-
-/// Whether a log-axis tick is 1, 2 or 5 times a power of ten (only those are labelled).
-fn round_tick(v: f64) -> bool {
-    if !(v.is_finite() && v > 0.0) {
-        return false;
-    }
-    let mantissa = v / 10f64.powf(v.log10().floor());
-    [1.0, 2.0, 5.0, 10.0]
-        .iter()
-        .any(|m| (mantissa - m).abs() < 1e-6 * m)
 }
 
 /// An axis tick value: up to two significant digits, no trailing zeros.

@@ -7,6 +7,8 @@ use super::measure::Row;
 
 /// What the summary says about how it was made.
 pub struct Header {
+    /// The heading.
+    pub title: String,
     /// The command line, frames abbreviated.
     pub command: String,
     /// Worker threads.
@@ -15,6 +17,10 @@ pub struct Header {
     pub runs: usize,
     /// Untimed runs first.
     pub warmup: usize,
+    /// The machine's load average when timing started (other processes share the cores).
+    pub load_before: Option<String>,
+    /// The load average when timing ended.
+    pub load_after: Option<String>,
 }
 
 /// The whole `summary.md`.
@@ -31,19 +37,22 @@ pub fn markdown(header: &Header, rows: &[Row], panels: &[Panel]) -> String {
 
 /// Title and how the numbers were taken.
 fn intro(out: &mut String, h: &Header) {
-    let _ = writeln!(out, "# gdrecon bench\n");
+    let _ = writeln!(out, "# {}\n", h.title);
     let _ = writeln!(out, "```\n{}\n```\n", h.command);
     let _ = writeln!(
         out,
         "{} UTC, {}, {} worker threads. Each variant is planned once per frame size (not \
          timed), then run {} time(s) untimed and {} time(s) timed per frame; seconds are the \
          median run. relMSE is against the frame's reference. Peak MiB is the process's \
-         resident high-water mark since the variant started (it includes every frame loaded).\n",
+         resident high-water mark since the variant started (it includes every frame loaded). \
+         Load average (1, 5, 15 min) before: {}, after: {}.\n",
         utc_now(),
         cpu_model(),
         h.threads,
         h.warmup,
-        h.runs
+        h.runs,
+        h.load_before.as_deref().unwrap_or("unknown"),
+        h.load_after.as_deref().unwrap_or("unknown")
     );
 }
 
@@ -185,6 +194,13 @@ pub fn seconds(s: f64) -> String {
     } else {
         format!("{s:.4}")
     }
+}
+
+/// The 1, 5 and 15 minute load averages (Linux), e.g. `1.02 0.87 0.55`.
+pub fn load_average() -> Option<String> {
+    let text = std::fs::read_to_string("/proc/loadavg").ok()?;
+    let fields: Vec<&str> = text.split_whitespace().take(3).collect();
+    (fields.len() == 3).then(|| fields.join(" "))
 }
 
 /// The CPU's model name (Linux), or `unknown CPU`.
