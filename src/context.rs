@@ -21,6 +21,7 @@ pub struct ContextOptions {
 #[derive(Clone, Debug)]
 pub struct Context {
     pool: Arc<rayon::ThreadPool>,
+    #[cfg_attr(not(feature = "gradnet"), allow(dead_code))]
     shared: Arc<Shared>,
 }
 
@@ -69,6 +70,7 @@ impl Context {
 
     /// The object stored under `key`, made by `make` on first request and shared by every
     /// plan of this context (and its clones) afterwards. A failed `make` stores nothing.
+    #[cfg_attr(not(feature = "gradnet"), allow(dead_code))]
     pub(crate) fn shared<T: Any + Send + Sync>(
         &self,
         key: &str,

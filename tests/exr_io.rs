@@ -269,3 +269,22 @@ fn png_preview_is_written() {
     let bytes = std::fs::read(&path).unwrap();
     assert_eq!(&bytes[1..4], b"PNG");
 }
+
+/// Found by fuzzing: a header declaring an enormous data window in a tiny file made the EXR
+/// crate allocate whatever it declared. It is refused before decoding.
+#[test]
+fn absurd_declared_size_is_refused_before_allocating() {
+    let bytes = std::fs::read(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/fixtures/exr/oom_declared_size.exr"),
+    )
+    .unwrap();
+    let err = gdrecon::io::exr::read_bundle_from_bytes(&bytes)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(
+        err.contains("refusing to allocate") || err.contains("damaged"),
+        "{err}"
+    );
+}

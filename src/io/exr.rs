@@ -10,7 +10,7 @@
 //! thread pool per call, and callers own the threads.
 
 use std::collections::BTreeMap;
-use std::io::{BufReader, Cursor, Read, Seek};
+use std::io::{BufReader, Cursor, Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 
 use exr::prelude as x;
@@ -123,7 +123,62 @@ fn exr_error(e: exr::error::Error, path: &Path) -> Error {
     }
 }
 
-fn parse_bundle(reader: impl Read + Seek, path: &Path) -> Result<RawBundle> {
+/// Decoded bytes a header may declare per byte of file (plus [`SIZE_SLACK`]). Frame bundles
+/// hold noisy floats, which no EXR compression shrinks more than a few times; a header that
+/// declares far more is damaged or hostile, and decoding it would allocate whatever it says
+/// (found by fuzzing: a 4 KB file asking for gigabytes).
+const MAX_EXPANSION: u64 = 64;
+/// Allowance on top of the expansion bound, so small files are never refused for it.
+const SIZE_SLACK: u64 = 64 << 20;
+
+/// Reads the header and refuses sizes the file cannot plausibly hold; rewinds the reader.
+fn check_declared_size(mut reader: impl Read + Seek, path: &Path) -> Result<()> {
+    let file_len = reader
+        .seek(SeekFrom::End(0))
+        .and_then(|len| reader.seek(SeekFrom::Start(0)).map(|_| len))
+        .map_err(|source| Error::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+    let meta = exr::meta::MetaData::read_from_buffered(&mut reader, false)
+        .map_err(|e| exr_error(e, path))?;
+    reader
+        .seek(SeekFrom::Start(0))
+        .map_err(|source| Error::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+    let mut declared: u64 = 0;
+    for header in &meta.headers {
+        let (w, h) = (header.layer_size.0 as u64, header.layer_size.1 as u64);
+        for channel in &header.channels.list {
+            let (sx, sy) = (
+                channel.sampling.0.max(1) as u64,
+                channel.sampling.1.max(1) as u64,
+            );
+            declared = declared.saturating_add((w / sx).saturating_mul(h / sy).saturating_mul(4));
+        }
+    }
+    let allowed = file_len
+        .saturating_mul(MAX_EXPANSION)
+        .saturating_add(SIZE_SLACK);
+    if declared > allowed {
+        let first = meta.headers.first().map(|h| h.layer_size);
+        return Err(Error::Exr {
+            path: path.to_owned(),
+            message: format!(
+                "the header declares {declared} bytes of samples ({} x {} per part) in a file \
+                 of {file_len} bytes: damaged or not a frame bundle (refusing to allocate it)",
+                first.map_or(0, |s| s.0),
+                first.map_or(0, |s| s.1)
+            ),
+        });
+    }
+    Ok(())
+}
+
+fn parse_bundle(mut reader: impl Read + Seek, path: &Path) -> Result<RawBundle> {
+    check_declared_size(&mut reader, path)?;
     let image = decode(reader, path)?;
     let err = |message: String| Error::Exr {
         path: path.to_owned(),

@@ -12,6 +12,9 @@
 //! the [`Context`] and shared by every plan made from it, so frames of several sizes reuse
 //! one loaded model.
 
+// Without the `gradnet` feature the native stages stay compiled (and unit-tested) but unused.
+#![cfg_attr(not(feature = "gradnet"), allow(dead_code))]
+
 pub(crate) mod bias;
 pub mod model;
 pub(crate) mod prep;
