@@ -240,9 +240,15 @@ impl Filter {
             spp,
             radius: self.cfg.radius,
         };
-        report.time(&format!("qp filter (level {depth})"), || {
+        let (out, var, skipped) = report.time(&format!("qp filter (level {depth})"), || {
             qp::gradient_guided_filter(&level)
-        })
+        });
+        if skipped > 0 {
+            report.skip(format!(
+                "QP on {skipped} empty pixels of level {depth} (zero colour and variance in the window)"
+            ));
+        }
+        (out, var)
     }
 }
 

@@ -206,7 +206,12 @@ impl Simplex<'_> {
 }
 
 /// Runs the filter over a level; returns the filtered colour and its variance.
-pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image) {
+/// The filtered image, its variance, and how many pixels were skipped as empty.
+///
+/// A pixel whose whole window has zero colour and zero variance is skipped: its output is a
+/// convex combination of zeros whatever the weights, so 0 (and variance 0) exactly, and the QP
+/// is not solved (black backgrounds, letterboxing, masked-out regions).
+pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, u64) {
     let (w, h) = level.img.size();
     let n_px = w * h;
     let r = level.radius as isize;
@@ -227,11 +232,16 @@ pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image) {
     let up_var = level.up.map(|(_, v)| v.as_slice());
     let alb = level.albedo.map(Image::as_slice);
     let nrm = level.normal.map(Image::as_slice);
-    let rows: Vec<(Vec<f32>, Vec<f32>)> = (0..h)
+    let empty: Vec<bool> = (0..n_px)
+        .into_par_iter()
+        .map(|q| (0..3).all(|c| img[c * n_px + q] == 0.0 && var[c * n_px + q] == 0.0))
+        .collect();
+    let rows: Vec<(Vec<f32>, Vec<f32>, u64)> = (0..h)
         .into_par_iter()
         .map(|y| {
             let mut out = vec![0.0f32; 3 * w];
             let mut out_var = vec![0.0f32; 3 * w];
+            let mut skipped = 0u64;
             let mut b = [[0.0f32; MAX_N]; MAX_K];
             let mut v = [0.0f32; MAX_N];
             let mut wts = [0.0f32; MAX_N];
@@ -245,6 +255,10 @@ pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image) {
                         idx[j] = yy * w + reflect(x as isize + dx, w);
                         j += 1;
                     }
+                }
+                if idx[..n].iter().all(|&q| empty[q]) {
+                    skipped += 1;
+                    continue;
                 }
                 for (j, &q) in idx[..n].iter().enumerate() {
                     let mut vq = 0.0;
@@ -322,12 +336,13 @@ pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image) {
                     out_var[c * w + x] = ov;
                 }
             }
-            (out, out_var)
+            (out, out_var, skipped)
         })
         .collect();
     let mut out = Image::zeros(3, h, w);
     let mut out_var = Image::zeros(3, h, w);
-    for (y, (o, ov)) in rows.iter().enumerate() {
+    let skipped = rows.iter().map(|r| r.2).sum();
+    for (y, (o, ov, _)) in rows.iter().enumerate() {
         for c in 0..3 {
             out.plane_mut(c)
                 .row_mut(y)
@@ -342,7 +357,7 @@ pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image) {
                 .copy_from_slice(&ov[c * w..(c + 1) * w]);
         }
     }
-    (out, out_var)
+    (out, out_var, skipped)
 }
 
 /// Which of the five terms the `row`-th built row belongs to (rows come in threes, skipping

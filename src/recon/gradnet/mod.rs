@@ -176,6 +176,21 @@ mod enabled {
         }
     }
 
+    /// Whether colour and gradients are zero everywhere in window `win` of the padded frame.
+    fn window_is_empty(frame: &Frame, map: FrameMap, win: Window) -> bool {
+        let images = [frame.color(), frame.dx(), frame.dy()];
+        (win.y0..win.y0 + win.h).all(|py| {
+            let sy = map.y.plain(py);
+            images.iter().all(|img| {
+                (0..3).all(|c| {
+                    let row = img.plane(c);
+                    let row = row.row(sy);
+                    (win.x0..win.x0 + win.w).all(|px| row[map.x.plain(px)] == 0.0)
+                })
+            })
+        })
+    }
+
     /// Clamps `out` to `[0, max(I_b) + (W + H) max|g|]`: no image whose gradients are the
     /// frame's can leave that range along any path from its brightest base pixel. Real frames
     /// never reach it (it only catches a network output that invents light, e.g. on a flat
@@ -268,6 +283,7 @@ mod enabled {
             let (h, w) = (frame.height(), frame.width());
             let runs = (self.tiles.len() * 3) as f64;
             let mut done = 0.0;
+            let mut empty_tiles = 0;
             for tile in self.tiles.clone() {
                 let win = Window {
                     y0: tile.y.origin,
@@ -275,6 +291,22 @@ mod enabled {
                     h: tile.y.size,
                     w: tile.x.size,
                 };
+                if window_is_empty(frame, self.map, win) {
+                    // No light and no gradient anywhere the network would look: the answer is
+                    // black (the network itself would add its bias), and the run is skipped.
+                    empty_tiles += 1;
+                    for c in 0..3 {
+                        let mut plane = out.plane_mut(c);
+                        for py in tile.y.core_start..tile.y.core_end.min(h) {
+                            for px in tile.x.core_start..tile.x.core_end.min(w) {
+                                plane[[py, px]] = 0.0;
+                            }
+                        }
+                    }
+                    done += 3.0;
+                    progress.update(0.97 * done / runs)?;
+                    continue;
+                }
                 let started = Instant::now();
                 if let (true, Some(norm)) = (use_features, norm) {
                     let planes = self
@@ -313,6 +345,12 @@ mod enabled {
                     done += 1.0;
                     progress.update(0.97 * done / runs)?;
                 }
+            }
+            if empty_tiles > 0 {
+                report.skip(format!(
+                    "network on {empty_tiles} of {} tiles: no radiance and no gradient in them",
+                    self.tiles.len()
+                ));
             }
             report.stages.push(Stage {
                 name: "prepare".into(),

@@ -1,0 +1,96 @@
+//! Work a frame does not need is skipped, and skipping never changes the answer: empty regions
+//! (zero colour, gradients and variance) cost the filter's QP and GradNet's network nothing and
+//! come out black; frames without features run the reduced paths (see tests/gradnet.rs).
+
+use std::path::Path;
+
+use gdrecon::recon::FilterConfig;
+#[cfg(all(feature = "gradnet", feature = "embed-model"))]
+use gdrecon::recon::GradNetConfig;
+use gdrecon::{
+    io, Context, ContextOptions, Frame, FrameBuilder, Image, Layer, MethodConfig, Plan, Policy,
+    Progress, Report,
+};
+
+/// The bundled sample placed at the right of a frame `pad` pixels wider, left part empty.
+fn half_empty(pad: usize) -> Frame {
+    let sample = io::read_bundle(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data/sample.exr"),
+        Policy::Replace,
+    )
+    .unwrap();
+    let (w, h) = sample.size();
+    let widen = |img: &Image| {
+        Image::from_fn(img.channels(), h, w + pad, |(c, y, x)| {
+            if x >= pad {
+                img.at(c, x - pad, y)
+            } else {
+                0.0
+            }
+        })
+    };
+    let mut b = FrameBuilder::new().spp(sample.spp());
+    for layer in [Layer::Color, Layer::Dx, Layer::Dy, Layer::Variance] {
+        b = b.image(layer, widen(sample.layer(layer).unwrap()));
+    }
+    b.build(Policy::Replace).unwrap()
+}
+
+fn run(frame: &Frame, config: MethodConfig) -> (Image, Report) {
+    let ctx = Context::new(ContextOptions { threads: Some(2) }).unwrap();
+    Plan::new(&ctx, &config, frame.width(), frame.height())
+        .unwrap()
+        .execute(frame, &Progress::none())
+        .unwrap()
+}
+
+fn left_is_black(out: &Image, upto: usize) -> bool {
+    (0..3).all(|c| (0..out.height()).all(|y| (0..upto).all(|x| out.at(c, x, y) == 0.0)))
+}
+
+fn stage(report: &Report, prefix: &str) -> f64 {
+    report
+        .stages
+        .iter()
+        .filter(|s| s.name.starts_with(prefix))
+        .map(|s| s.time.as_secs_f64())
+        .sum()
+}
+
+#[test]
+fn filter_skips_empty_windows_in_the_qp() {
+    let frame = half_empty(320);
+    let (out, report) = run(&frame, MethodConfig::Filter(FilterConfig::default()));
+    let skipped: Vec<&String> = report
+        .skipped
+        .iter()
+        .filter(|s| s.contains("empty pixels"))
+        .collect();
+    assert!(!skipped.is_empty(), "{:?}", report.skipped);
+    // The 9 x 9 window of the 4 columns next to the content reaches it; further left is empty.
+    assert!(left_is_black(&out, 300));
+    println!(
+        "filter on 640 x 180, left half empty: qp {:.3} s; {:?}",
+        stage(&report, "qp"),
+        skipped
+    );
+}
+
+#[cfg(all(feature = "gradnet", feature = "embed-model"))]
+#[test]
+fn gradnet_skips_empty_tiles() {
+    let frame = half_empty(640);
+    let mut config = GradNetConfig::default();
+    config.tile_size = 256;
+    let (out, report) = run(&frame, MethodConfig::GradNet(config));
+    let note = report
+        .skipped
+        .iter()
+        .find(|s| s.contains("no radiance and no gradient"))
+        .unwrap_or_else(|| panic!("{:?}", report.skipped));
+    println!(
+        "gradnet on 960 x 180, 640 columns empty: network {:.3} s; {note}",
+        stage(&report, "network")
+    );
+    assert!(left_is_black(&out, 500));
+}
