@@ -217,6 +217,80 @@ def test_export_untrained_parity(tmp_path, data_ch):
         assert torch.equal(v, back.state_dict()[k])
 
 
+# ---------------------------------------------------------------- decoder rewrite (export.py --deconv)
+
+ODD_EVEN = [(5, 7), (6, 8), (1, 1), (9, 4)]   # (H, W) of the transposed conv's input
+
+
+@pytest.mark.parametrize("relu", [False, True])
+def test_subpixel_equals_convtranspose(relu):
+    torch.manual_seed(3)
+    for cin, cout in [(16, 8), (3, 5)]:
+        ct = torch.nn.ConvTranspose2d(cin, cout, 4, stride=2, padding=1)
+        sub = ex.SubpixelConvTranspose2d(ct, relu=relu)
+        for (h, w) in ODD_EVEN:
+            x = torch.randn(2, cin, h, w)
+            with torch.no_grad():
+                ref = ct(x)
+                ref = torch.relu(ref) if relu else ref
+                got = sub(x)
+            assert got.shape == ref.shape == (2, cout, 2 * h, 2 * w)
+            assert float((got - ref).abs().max()) < 1e-5
+        w_back, b_back = ex.SubpixelConvTranspose2d.deconv_params(sub.conv.weight.detach(), sub.conv.bias.detach())
+        assert torch.equal(w_back, ct.weight.detach()) and torch.equal(b_back, ct.bias.detach())
+
+
+def test_phase_and_polyphase_equal_convtranspose_then_conv():
+    torch.manual_seed(4)
+    cin, cout = 12, 8
+    ct = torch.nn.ConvTranspose2d(cin, cout, 4, stride=2, padding=1)
+    out = torch.nn.Conv2d(cout, 3, 3, padding=1)
+    ph, poly = ex.PhaseConvTranspose2d(ct, relu=True), ex.PolyphaseConv2d(out)
+    for (h, w) in ODD_EVEN:
+        x = torch.randn(2, cin, h, w)
+        with torch.no_grad():
+            u = torch.relu(ct(x))
+            p = ph(x)
+            # phase (a, b) of channel c = u[c, a::2, b::2]
+            ref_p = torch.cat([u[:, :, a::2, b::2] for a in range(2) for b in range(2)], 1)
+            assert p.shape == ref_p.shape and float((p - ref_p).abs().max()) < 1e-5
+            got, ref = poly(p), out(u)
+        assert got.shape == ref.shape == (2, 3, 2 * h, 2 * w)
+        assert float((got - ref).abs().max()) < 1e-5
+    ks = {(a, b): getattr(ph, f"w{a}{b}").detach() for a in range(2) for b in range(2)}
+    w_back, b_back = ex.PhaseConvTranspose2d.deconv_params(ks, ph.bias.detach())
+    assert torch.equal(w_back, ct.weight.detach()) and torch.equal(b_back, ct.bias.detach())
+    w_back, b_back = ex.PolyphaseConv2d.conv_params(poly.conv.weight.detach(), poly.conv.bias.detach())
+    assert torch.equal(w_back, out.weight.detach()) and torch.equal(b_back, out.bias.detach())
+
+
+@pytest.mark.parametrize("form", ex.DECONV_FORMS)
+def test_swapped_net_and_export(tmp_path, form):
+    torch.manual_seed(5)
+    net = gn.GradNet().eval()
+    sw = ex.swap_deconv(net, form)
+    assert isinstance(net.u1[0], torch.nn.ConvTranspose2d)        # the original is untouched
+    n_ct = sum(isinstance(m, torch.nn.ConvTranspose2d) for m in sw.modules())
+    assert n_ct == (3 if form == "convtranspose" else 0)
+    rng = np.random.default_rng(6)
+    d = rng.random((1, 8, 40, 56), dtype=np.float32)
+    g = rng.random((1, 2, 40, 56), dtype=np.float32) - 0.5
+    with torch.no_grad():
+        ref = net(torch.from_numpy(d), torch.from_numpy(g)).numpy()
+        assert float(np.abs(sw(torch.from_numpy(d), torch.from_numpy(g)).numpy() - ref).max()) < 1e-5
+    path = str(tmp_path / f"{form}.onnx")
+    m = ex.export_model(net, path, deconv=form)
+    assert {p.key: p.value for p in m.metadata_props}["deconv"] == form
+    assert m.ir_version == 8 and m.opset_import[0].version == 17
+    ops = {n.op_type for n in m.graph.node}
+    assert ("ConvTranspose" in ops) == (form == "convtranspose")
+    got = _sess(path).run(["output"], {"data": d, "grad": g})[0]
+    assert got.shape == (1, 1, 40, 56) and float(np.abs(got - ref).max()) < TOL
+    back = ex.net_from_onnx(path)
+    for k, v in net.state_dict().items():
+        assert torch.equal(v, back.state_dict()[k])
+
+
 SHIPPED = [f for f in ("gradnet.onnx", "gradnet_nofeat.onnx") if os.path.exists(os.path.join(ONNX_DIR, f))]
 
 
@@ -235,6 +309,8 @@ def test_shipped_model_hash_and_parity(name):
     assert man["sha256"] == digest and man["epochs_trained"] >= 1
     m = onnx.load(path)
     assert m.ir_version <= 10 and os.path.getsize(path) < 32e6
+    assert {p.key: p.value for p in m.metadata_props}.get("deconv", "convtranspose") == \
+        man.get("deconv", "convtranspose")
     net = ex.net_from_onnx(path)
     assert _parity(net, path, [(8, 16), (24, 24)], seed=1) < TOL
 
