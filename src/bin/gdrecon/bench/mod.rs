@@ -239,19 +239,25 @@ fn write_report(dir: &Path, header: &summary::Header, rows: &[Row]) -> gdrecon::
     Ok(())
 }
 
-/// This process's command line, with frame paths shortened to their file names.
+/// This process's command line, with frame paths shortened to their file names and words
+/// holding spaces quoted.
 fn command_line(inputs: &[PathBuf]) -> String {
     let words: Vec<String> = std::env::args_os()
         .skip(1)
         .map(|a| {
-            let path = Path::new(&a);
-            if inputs.iter().any(|i| i.as_os_str() == a) {
-                path.file_name()
+            let word = if inputs.iter().any(|i| i.as_os_str() == a) {
+                Path::new(&a)
+                    .file_name()
                     .unwrap_or(&a)
                     .to_string_lossy()
                     .into_owned()
             } else {
                 a.to_string_lossy().into_owned()
+            };
+            if word.contains(char::is_whitespace) {
+                format!("'{word}'")
+            } else {
+                word
             }
         })
         .collect();

@@ -8,6 +8,7 @@ use std::path::Path;
 use std::sync::OnceLock;
 
 use plotters::coord::Shift;
+
 use plotters::prelude::*;
 use plotters::style::{register_font, FontStyle};
 
@@ -152,26 +153,80 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, panel: &Panel) 
         .draw()?;
     let grey = BLACK.mix(0.45);
     chart.draw_series(LineSeries::new(front(&panel.points), grey.stroke_width(1)))?;
-    let shifts = label_shifts(&panel.points, (x0, x1), (y0, y1));
-    chart.draw_series(panel.points.iter().zip(shifts).map(|(p, shift)| {
+    let font: TextStyle = (FONT, 12).into();
+    let pixels: Vec<Pixel> = panel
+        .points
+        .iter()
+        .map(|p| chart.backend_coord(&(p.seconds, p.rel_mse)))
+        .collect();
+    let sizes = panel
+        .points
+        .iter()
+        .map(|p| area.estimate_text_size(&p.variant, &font))
+        .collect::<Result<Vec<_>, _>>()?;
+    let offsets = label_offsets(&pixels, &sizes, chart.plotting_area().get_pixel_range());
+    chart.draw_series(panel.points.iter().zip(offsets).map(|(p, offset)| {
         EmptyElement::at((p.seconds, p.rel_mse))
             + Circle::new((0, 0), 5, marker_style(p, method_color(&p.method)))
-            + Text::new(p.variant.clone(), (8, shift - 6), (FONT, 12).into_font())
+            + Text::new(p.variant.clone(), offset, font.clone())
     }))?;
     Ok(())
 }
 
-/// Vertical pixel offsets for the point labels: a label whose point is close to earlier ones
-/// moves down one line per such neighbour, so names of near-identical points stay readable.
-fn label_shifts(points: &[Point], x: (f64, f64), y: (f64, f64)) -> Vec<i32> {
-    let span = |(lo, hi): (f64, f64)| (hi / lo).ln();
-    let near = |a: &Point, b: &Point| {
-        (a.seconds / b.seconds).ln().abs() < 0.12 * span(x)
-            && (a.rel_mse / b.rel_mse).ln().abs() < 0.04 * span(y)
-    };
-    (0..points.len())
-        .map(|i| 13 * points[..i].iter().filter(|q| near(q, &points[i])).count() as i32)
-        .collect()
+/// A pixel position on the backend.
+type Pixel = (i32, i32);
+
+/// A pixel rectangle `(left, top, right, bottom)`.
+type Rect = (i32, i32, i32, i32);
+
+/// Label positions relative to their points: for each label (in order) the first candidate
+/// spot, right of the point, then above or below, then left, whose box stays inside the plot
+/// and overlaps no point and no label placed before it; the first spot when none is free.
+fn label_offsets(
+    points: &[Pixel],
+    sizes: &[(u32, u32)],
+    (xs, ys): (std::ops::Range<i32>, std::ops::Range<i32>),
+) -> Vec<Pixel> {
+    let mut taken: Vec<Rect> = points
+        .iter()
+        .map(|&(x, y)| (x - 6, y - 6, x + 6, y + 6))
+        .collect();
+    let mut offsets = Vec::with_capacity(points.len());
+    for (&(px, py), &(w, h)) in points.iter().zip(sizes) {
+        let (w, h) = (w as i32, h as i32);
+        let candidates = [
+            (8, -h / 2),
+            (8, -h - 3),
+            (8, 3),
+            (-8 - w, -h / 2),
+            (-8 - w, -h - 3),
+            (-8 - w, 3),
+            (-w / 2, -h - 8),
+            (-w / 2, 8),
+            (8, h + 3),
+            (8, -2 * h - 3),
+        ];
+        let rect = |(dx, dy): Pixel| (px + dx, py + dy, px + dx + w, py + dy + h);
+        let fits = |r: Rect| {
+            r.0 >= xs.start
+                && r.2 <= xs.end
+                && r.1 >= ys.start
+                && r.3 <= ys.end
+                && !taken.iter().any(|t| overlap(*t, r))
+        };
+        let chosen = candidates
+            .into_iter()
+            .find(|&c| fits(rect(c)))
+            .unwrap_or(candidates[0]);
+        taken.push(rect(chosen));
+        offsets.push(chosen);
+    }
+    offsets
+}
+
+/// Whether two rectangles intersect.
+fn overlap(a: Rect, b: Rect) -> bool {
+    a.0 < b.2 && b.0 < a.2 && a.1 < b.3 && b.1 < a.3
 }
 
 /// Tick values inside `lo..hi`: 1, 2 and 5 times the powers of ten, or 1 and 3, or only the
@@ -195,7 +250,7 @@ fn marker_style(p: &Point, color: RGBColor) -> ShapeStyle {
     if p.pareto {
         color.filled()
     } else {
-        color.stroke_width(2)
+        color.stroke_width(1)
     }
 }
 
