@@ -44,8 +44,9 @@ pub struct GradNetConfig {
     /// Use albedo, normal and depth when the frame has them (the full model); `false` always
     /// runs the no-feature model.
     pub use_features: bool,
-    /// Largest tile side in pixels (after padding to a multiple of 8); larger frames run in
-    /// overlapping tiles of this size. `0` never tiles. At least 208.
+    /// Tile side in pixels (after padding to a multiple of 8): a frame of more than
+    /// `tile_size²` pixels runs in overlapping square tiles of this side, which bounds the
+    /// network's memory; smaller frames run whole. `0` never tiles. At least 208.
     pub tile_size: usize,
     /// Apply the release's Gaussian bias correction (on by default).
     pub bias_correction: bool,
@@ -63,9 +64,9 @@ impl Default for GradNetConfig {
     }
 }
 
-/// Default [`GradNetConfig::tile_size`]: 1280 x 720 runs as one tile, 4K as 8 tiles of
-/// 1024 x 1024 and stays under 1.5 GB.
-pub const DEFAULT_TILE: usize = 1280;
+/// Default [`GradNetConfig::tile_size`]: 1280 x 720 runs as one tile; 4K as 15 tiles of
+/// 1024 x 1024, under 1.5 GB.
+pub const DEFAULT_TILE: usize = 1024;
 
 #[cfg(feature = "gradnet")]
 pub use enabled::GradNet;

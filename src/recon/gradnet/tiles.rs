@@ -84,10 +84,16 @@ pub(crate) struct Tile {
     pub x: Span,
 }
 
-/// Tiles covering a padded `width x height` frame, at most `max` pixels on a side
-/// (`max == 0`: one tile).
+/// Tiles covering a padded `width x height` frame with at most `max * max` pixels each
+/// (`max == 0`: one tile). A frame within that budget is one tile, whatever its shape (1280 x
+/// 720 under the default 1024: the cheapest and most exact run); a larger one is split into
+/// square tiles of side `max`.
 pub(crate) fn layout(width: usize, height: usize, max: usize) -> Result<Vec<Tile>> {
-    let max = if max == 0 { usize::MAX } else { max };
+    let max = if max == 0 || width.saturating_mul(height) <= max.saturating_mul(max) {
+        usize::MAX
+    } else {
+        max
+    };
     let (ys, xs) = (split(height, max)?, split(width, max)?);
     Ok(ys
         .iter()
@@ -134,8 +140,14 @@ mod tests {
     fn small_frames_are_one_tile_and_small_tiles_are_refused() {
         assert_eq!(layout(720, 1280, 0).unwrap().len(), 1);
         assert_eq!(layout(1280, 720, 1280).unwrap().len(), 1);
-        assert_eq!(layout(1280, 720, 1024).unwrap().len(), 2);
-        let err = split(1024, 100).unwrap_err().to_string();
+        // Within the pixel budget: one tile even though 1280 > 1024.
+        assert_eq!(layout(1280, 720, 1024).unwrap().len(), 1);
+        assert_eq!(layout(8192, 8, 1024).unwrap().len(), 1);
+        // 4K: square tiles of 1024.
+        let k4 = layout(3840, 2160, 1024).unwrap();
+        assert!(k4.iter().all(|t| t.x.size == 1024 && t.y.size == 1024));
+        assert_eq!(k4.len(), 5 * 3);
+        let err = layout(1024, 1024, 100).unwrap_err().to_string();
         assert!(err.contains("too small"), "{err}");
     }
 }
