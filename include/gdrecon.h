@@ -231,10 +231,10 @@ gdr_error gdr_filter_release(gdr_filter **filter);
 // Set a float parameter: `"alpha"` (screened Poisson weight), `"spp"` (0 = unknown); l1 also `"cg_tolerance"`.
 gdr_error gdr_filter_set_float(gdr_filter *filter, const char *name, float value);
 
-// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step).
+// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step); gradnet `"tile_size"` (frames above tile_size² pixels run in tiles of that side; 0 = never).
 gdr_error gdr_filter_set_int(gdr_filter *filter, const char *name, int32_t value);
 
-// Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`.
+// Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`; gradnet `"bias_correction"`, `"use_features"` (both default true).
 //
 // `"internal_test_panic"` = true is reserved for tests: it raises an internal error inside the
 // library, which must come back as `GDR_ERROR_UNKNOWN` (no panic crosses the ABI).

@@ -397,7 +397,7 @@ pub unsafe extern "C" fn gdr_filter_set_float(
     })
 }
 
-/// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step).
+/// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step); gradnet `"tile_size"` (frames above tile_size² pixels run in tiles of that side; 0 = never).
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_set_int(
     filter: *mut gdr_filter,
@@ -409,7 +409,7 @@ pub unsafe extern "C" fn gdr_filter_set_int(
     })
 }
 
-/// Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`.
+/// Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`; gradnet `"bias_correction"`, `"use_features"` (both default true).
 ///
 /// `"internal_test_panic"` = true is reserved for tests: it raises an internal error inside the
 /// library, which must come back as `GDR_ERROR_UNKNOWN` (no panic crosses the ABI).
