@@ -56,6 +56,14 @@ fn crop(name: &str) -> Frame {
     io::read_bundle(fixture(&format!("{name}.exr")), Policy::Replace).unwrap()
 }
 
+fn sample() -> Frame {
+    io::read_bundle(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data/sample.exr"),
+        Policy::Replace,
+    )
+    .unwrap()
+}
+
 fn without_features(frame: Frame) -> Frame {
     frame
         .into_builder()
@@ -90,11 +98,7 @@ fn pipeline_matches_the_python_reference() {
 
 #[test]
 fn tiles_match_the_untiled_run() {
-    let frame = io::read_bundle(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data/sample.exr"),
-        Policy::Replace,
-    )
-    .unwrap();
+    let frame = sample();
     let mut whole = GradNetConfig::default();
     whole.tile_size = 0;
     let mut tiled = GradNetConfig::default();
@@ -212,11 +216,7 @@ fn model_errors_are_distinct() {
     c.tile_size = 100;
     let small = run(&crop("crop_a"), c);
     assert!(small.is_ok(), "a frame smaller than the tile is one tile");
-    let big = io::read_bundle(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data/sample.exr"),
-        Policy::Replace,
-    )
-    .unwrap();
+    let big = sample();
     let mut c = GradNetConfig::default();
     c.tile_size = 100;
     let err = run(&big, c).unwrap_err();

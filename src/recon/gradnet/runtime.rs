@@ -136,9 +136,8 @@ const LIBRARY_PREFIX: &str = "libonnxruntime.";
 #[cfg(not(target_os = "macos"))]
 const LIBRARY_PREFIX: &str = "libonnxruntime.so";
 
-/// The ONNX Runtime library in `dir`: the unversioned name if present, else the highest
-/// versioned one (`libonnxruntime.so.1.31.1`).
-fn library_in(dir: &Path) -> Option<PathBuf> {
+/// Sorted paths of the entries of `dir` whose name starts with `prefix`.
+fn entries_with_prefix(dir: &Path, prefix: &str) -> Option<Vec<PathBuf>> {
     let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
         .ok()?
         .filter_map(|e| e.ok())
@@ -146,27 +145,26 @@ fn library_in(dir: &Path) -> Option<PathBuf> {
         .filter(|p| {
             p.file_name()
                 .and_then(|n| n.to_str())
-                .is_some_and(|n| n.starts_with(LIBRARY_PREFIX))
+                .is_some_and(|n| n.starts_with(prefix))
         })
         .collect();
     found.sort();
-    found.first().cloned()
+    Some(found)
 }
 
+/// The ONNX Runtime library in `dir`: the unversioned name if present (it sorts first), else
+/// the last versioned one (`libonnxruntime.so.1.31.1`).
+fn library_in(dir: &Path) -> Option<PathBuf> {
+    let found = entries_with_prefix(dir, LIBRARY_PREFIX)?;
+    let unversioned = found
+        .iter()
+        .find(|p| p.file_name().and_then(|n| n.to_str()) == Some(LIBRARY_PREFIX));
+    unversioned.or(found.last()).cloned()
+}
+
+/// The runtime in a Python environment: `lib/python3*/site-packages/onnxruntime/capi/`.
 fn python_runtime(venv: &Path) -> Option<PathBuf> {
-    let lib = venv.join("lib");
-    let mut pythons: Vec<PathBuf> = std::fs::read_dir(&lib)
-        .ok()?
-        .filter_map(|e| e.ok())
-        .map(|e| e.path())
-        .filter(|p| {
-            p.file_name()
-                .and_then(|n| n.to_str())
-                .is_some_and(|n| n.starts_with("python3"))
-        })
-        .collect();
-    pythons.sort();
-    pythons
+    entries_with_prefix(&venv.join("lib"), "python3")?
         .iter()
         .rev()
         .find_map(|p| library_in(&p.join("site-packages/onnxruntime/capi")))
