@@ -94,3 +94,91 @@ fn gradnet_skips_empty_tiles() {
     );
     assert!(left_is_black(&out, 500));
 }
+
+/// The sample with its right `w` columns replaced by the 4096 spp reference, declared
+/// converged there (variance 0, gradients the reference's exact differences).
+fn half_converged() -> Frame {
+    let sample = io::read_bundle(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data/sample.exr"),
+        Policy::Replace,
+    )
+    .unwrap();
+    let (w, h) = sample.size();
+    let reference = sample.reference().unwrap();
+    let converged = |x: usize| x >= w;
+    let colour = Image::from_fn(3, h, 2 * w, |(c, y, x)| {
+        if converged(x) {
+            reference.at(c, x - w, y)
+        } else {
+            sample.color().at(c, x, y)
+        }
+    });
+    let (exact_dx, exact_dy) = colour.forward_differences();
+    let pick = |layer: Layer, exact: &Image| {
+        Image::from_fn(3, h, 2 * w, |(c, y, x)| {
+            if x + 1 >= w {
+                exact.at(c, x, y)
+            } else {
+                sample.layer(layer).unwrap().at(c, x, y)
+            }
+        })
+    };
+    let variance = Image::from_fn(3, h, 2 * w, |(c, y, x)| {
+        if converged(x) {
+            0.0
+        } else {
+            sample.variance().unwrap().at(c, x, y)
+        }
+    });
+    FrameBuilder::new()
+        .spp(sample.spp())
+        .image(Layer::Dx, pick(Layer::Dx, &exact_dx))
+        .image(Layer::Dy, pick(Layer::Dy, &exact_dy))
+        .image(Layer::Color, colour)
+        .image(Layer::Variance, variance)
+        .build(Policy::Replace)
+        .unwrap()
+}
+
+fn right_is_base(out: &Image, frame: &Frame, from: usize) -> bool {
+    (0..3).all(|c| {
+        (0..out.height()).all(|y| {
+            (from..out.width()).all(|x| {
+                let (o, b) = (out.at(c, x, y), frame.color().at(c, x, y));
+                (o - b).abs() <= 1e-6 * b.abs()
+            })
+        })
+    })
+}
+
+#[test]
+fn filter_keeps_converged_pixels() {
+    let frame = half_converged();
+    let (out, report) = run(&frame, MethodConfig::Filter(FilterConfig::default()));
+    let note = report
+        .skipped
+        .iter()
+        .find(|s| s.contains("converged pixels"))
+        .unwrap_or_else(|| panic!("{:?}", report.skipped));
+    println!(
+        "filter on 640 x 180, right half converged: qp {:.3} s; {note}",
+        stage(&report, "qp")
+    );
+    assert!(right_is_base(&out, &frame, 320));
+}
+
+#[cfg(all(feature = "gradnet", feature = "embed-model"))]
+#[test]
+fn gradnet_keeps_converged_tiles() {
+    let frame = half_converged();
+    let mut config = GradNetConfig::default();
+    config.tile_size = 232;
+    let (out, report) = run(&frame, MethodConfig::GradNet(config));
+    let note = report
+        .skipped
+        .iter()
+        .find(|s| s.contains("converged"))
+        .unwrap_or_else(|| panic!("{:?}", report.skipped));
+    println!("gradnet on 640 x 180, right half converged: {note}");
+    assert!(right_is_base(&out, &frame, 560));
+}

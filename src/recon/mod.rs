@@ -8,6 +8,7 @@
 //! out of every result.
 
 pub mod auto;
+pub mod converged;
 mod dct;
 pub mod filter;
 pub mod gradnet;

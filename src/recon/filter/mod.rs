@@ -10,6 +10,7 @@ pub(crate) mod qp;
 pub(crate) mod rdfc;
 pub(crate) mod util;
 
+use super::converged::converged_mask;
 use super::{Method, PoissonL1, PoissonL1Config, Reconstructor};
 use crate::error::{Error, Result};
 use crate::frame::Frame;
@@ -128,6 +129,8 @@ struct LevelInputs {
     albedo: Option<Image>,
     normal: Option<Image>,
     guide: Image,
+    /// Pixels already converged (finest level only): the QP returns their colour.
+    converged: Option<Vec<bool>>,
 }
 
 /// Smallest side that is still split into a coarser level.
@@ -200,6 +203,7 @@ impl Filter {
                 albedo: inp.albedo.as_ref().map(|a| fit.downsample(&pad(a), false)),
                 normal: inp.normal.as_ref().map(|f| fit.downsample(&pad(f), false)),
                 guide: fit.downsample(&pad(&inp.guide), false),
+                converged: None,
             };
             let (r, v) = self.run_level(&coarse, levels - 1, spp, depth + 1, report);
             let (u, uv) = fit.upsample(&r, Some(&v));
@@ -239,13 +243,22 @@ impl Filter {
             up: up.as_ref().map(|(u, v)| (u, v)),
             spp,
             radius: self.cfg.radius,
+            converged: inp.converged.as_deref(),
         };
         let (out, var, skipped) = report.time(&format!("qp filter (level {depth})"), || {
             qp::gradient_guided_filter(&level)
         });
-        if skipped > 0 {
+        if skipped.empty > 0 {
             report.skip(format!(
-                "QP on {skipped} empty pixels of level {depth} (zero colour and variance in the window)"
+                "QP on {} empty pixels of level {depth} (zero colour and variance in the window)",
+                skipped.empty
+            ));
+        }
+        if skipped.converged > 0 {
+            report.skip(format!(
+                "QP on {} converged pixels (noise < {} of the value, consistent gradients): base colour kept",
+                skipped.converged,
+                crate::recon::converged::RELATIVE_NOISE
             ));
         }
         (out, var)
@@ -343,6 +356,7 @@ impl Reconstructor for Filter {
             albedo: albedo.cloned(),
             normal: normal.cloned(),
             guide,
+            converged: converged_mask(frame),
         };
         let (filtered, _variance) = self.run_level(&inputs, self.cfg.levels, spp, 0, report);
         for (o, &v) in out.as_mut_slice().iter_mut().zip(filtered.as_slice()) {

@@ -43,6 +43,17 @@ pub(crate) struct QpLevel<'a> {
     pub up: Option<(&'a Image, &'a Image)>,
     pub spp: f32,
     pub radius: usize,
+    /// Converged pixels, whose output is their own colour and variance (finest level).
+    pub converged: Option<&'a [bool]>,
+}
+
+/// Pixels the QP did not solve.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub(crate) struct Skipped {
+    /// Whole window black with zero variance: output 0.
+    pub empty: u64,
+    /// Converged: output the pixel's colour.
+    pub converged: u64,
 }
 
 /// Term weights `alpha` of the five bias terms for `spp` samples (0 = term off).
@@ -206,12 +217,13 @@ impl Simplex<'_> {
 }
 
 /// Runs the filter over a level; returns the filtered colour and its variance.
-/// The filtered image, its variance, and how many pixels were skipped as empty.
+/// The filtered image, its variance, and the pixels skipped.
 ///
 /// A pixel whose whole window has zero colour and zero variance is skipped: its output is a
 /// convex combination of zeros whatever the weights, so 0 (and variance 0) exactly, and the QP
-/// is not solved (black backgrounds, letterboxing, masked-out regions).
-pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, u64) {
+/// is not solved (black backgrounds, letterboxing, masked-out regions). A converged pixel
+/// (`level.converged`) keeps its colour and variance.
+pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, Skipped) {
     let (w, h) = level.img.size();
     let n_px = w * h;
     let r = level.radius as isize;
@@ -236,12 +248,12 @@ pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, u64) {
         .into_par_iter()
         .map(|q| (0..3).all(|c| img[c * n_px + q] == 0.0 && var[c * n_px + q] == 0.0))
         .collect();
-    let rows: Vec<(Vec<f32>, Vec<f32>, u64)> = (0..h)
+    let rows: Vec<(Vec<f32>, Vec<f32>, Skipped)> = (0..h)
         .into_par_iter()
         .map(|y| {
             let mut out = vec![0.0f32; 3 * w];
             let mut out_var = vec![0.0f32; 3 * w];
-            let mut skipped = 0u64;
+            let mut skipped = Skipped::default();
             let mut b = [[0.0f32; MAX_N]; MAX_K];
             let mut v = [0.0f32; MAX_N];
             let mut wts = [0.0f32; MAX_N];
@@ -257,7 +269,15 @@ pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, u64) {
                     }
                 }
                 if idx[..n].iter().all(|&q| empty[q]) {
-                    skipped += 1;
+                    skipped.empty += 1;
+                    continue;
+                }
+                if level.converged.is_some_and(|m| m[p]) {
+                    for c in 0..3 {
+                        out[c * w + x] = img[c * n_px + p];
+                        out_var[c * w + x] = var[c * n_px + p];
+                    }
+                    skipped.converged += 1;
                     continue;
                 }
                 for (j, &q) in idx[..n].iter().enumerate() {
@@ -341,7 +361,10 @@ pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, u64) {
         .collect();
     let mut out = Image::zeros(3, h, w);
     let mut out_var = Image::zeros(3, h, w);
-    let skipped = rows.iter().map(|r| r.2).sum();
+    let skipped = rows.iter().fold(Skipped::default(), |a, r| Skipped {
+        empty: a.empty + r.2.empty,
+        converged: a.converged + r.2.converged,
+    });
     for (y, (o, ov, _)) in rows.iter().enumerate() {
         for c in 0..3 {
             out.plane_mut(c)

@@ -88,6 +88,7 @@ mod enabled {
     use crate::frame::Frame;
     use crate::image::Image;
     use crate::progress::Progress;
+    use crate::recon::converged::converged_mask;
     use crate::recon::{Method, Reconstructor};
     use crate::report::{Report, Stage};
 
@@ -192,6 +193,15 @@ mod enabled {
         })
     }
 
+    /// Whether every pixel of window `win` of the padded frame is converged (`mask`, frame
+    /// width `w`).
+    fn window_is_converged(mask: &[bool], w: usize, map: FrameMap, win: Window) -> bool {
+        (win.y0..win.y0 + win.h).all(|py| {
+            let row = map.y.plain(py) * w;
+            (win.x0..win.x0 + win.w).all(|px| mask[row + map.x.plain(px)])
+        })
+    }
+
     /// Clamps `out` to `[0, max(I_b) + (W + H) max|g|]`: no image whose gradients are the
     /// frame's can leave that range along any path from its brightest base pixel. Real frames
     /// never reach it (it only catches a network output that invents light, e.g. on a flat
@@ -285,6 +295,8 @@ mod enabled {
             let runs = (self.tiles.len() * 3) as f64;
             let mut done = 0.0;
             let mut empty_tiles = 0;
+            let mut converged_tiles = 0;
+            let converged = converged_mask(frame);
             for tile in self.tiles.clone() {
                 let win = Window {
                     y0: tile.y.origin,
@@ -301,6 +313,25 @@ mod enabled {
                         for py in tile.y.core_start..tile.y.core_end.min(h) {
                             for px in tile.x.core_start..tile.x.core_end.min(w) {
                                 plane[[py, px]] = 0.0;
+                            }
+                        }
+                    }
+                    done += 3.0;
+                    progress.update(0.97 * done / runs)?;
+                    continue;
+                }
+                if converged
+                    .as_deref()
+                    .is_some_and(|m| window_is_converged(m, w, self.map, win))
+                {
+                    // Everything the network would see has converged: keep the base colour.
+                    converged_tiles += 1;
+                    for c in 0..3 {
+                        let src = frame.color().plane(c);
+                        let mut plane = out.plane_mut(c);
+                        for py in tile.y.core_start..tile.y.core_end.min(h) {
+                            for px in tile.x.core_start..tile.x.core_end.min(w) {
+                                plane[[py, px]] = src[[py, px]];
                             }
                         }
                     }
@@ -350,6 +381,12 @@ mod enabled {
             if empty_tiles > 0 {
                 report.skip(format!(
                     "network on {empty_tiles} of {} tiles: no radiance and no gradient in them",
+                    self.tiles.len()
+                ));
+            }
+            if converged_tiles > 0 {
+                report.skip(format!(
+                    "network on {converged_tiles} of {} tiles: every pixel in them converged (base colour kept)",
                     self.tiles.len()
                 ));
             }
