@@ -182,3 +182,33 @@ fn gradnet_keeps_converged_tiles() {
     println!("gradnet on 640 x 180, right half converged: {note}");
     assert!(right_is_base(&out, &frame, 560));
 }
+
+/// Writes the frames of this file as bundles for `gdrecon bench` (docs/skipping.md):
+/// `GDR_SKIP_DIR=dir cargo test --release --test skip -- --ignored write_frames`.
+#[test]
+#[ignore]
+fn write_frames() {
+    let dir = std::path::PathBuf::from(std::env::var("GDR_SKIP_DIR").expect("GDR_SKIP_DIR"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let sample = io::read_bundle(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data/sample.exr"),
+        Policy::Replace,
+    )
+    .unwrap();
+    // Control: the noisy sample twice, side by side (same size as the others).
+    let (w, h) = sample.size();
+    let twice =
+        |img: &Image| Image::from_fn(img.channels(), h, 2 * w, |(c, y, x)| img.at(c, x % w, y));
+    let mut b = FrameBuilder::new().spp(sample.spp());
+    for layer in [Layer::Color, Layer::Dx, Layer::Dy, Layer::Variance] {
+        b = b.image(layer, twice(sample.layer(layer).unwrap()));
+    }
+    let control = b.build(Policy::Replace).unwrap();
+    for (name, frame) in [
+        ("control", control),
+        ("half_empty", half_empty(320)),
+        ("half_converged", half_converged()),
+    ] {
+        io::write_bundle(dir.join(format!("{name}.exr")), &frame).unwrap();
+    }
+}

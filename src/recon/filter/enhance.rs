@@ -148,7 +148,12 @@ fn descend(src: &[f32], dst: &mut [f32], dx: &[f32], dy: &[f32], wt: &EnhanceWei
             if y >= 1 {
                 g += flux(wt.my[k - w], wt.sy[k - w], src[i] - src[i - w], dy[i - w]);
             }
-            *out = src[i] - step * g;
+            // Flush subnormals to zero: diffusion into a black region leaves values decaying
+            // through the subnormal range, where every operation is ~100x slower (measured:
+            // the finest level's 1000 steps took 3.45 s instead of 1.56 s on a half-black
+            // 640 x 180 frame). Below 1.2e-38 nothing is visible.
+            let v = src[i] - step * g;
+            *out = if v.abs() < f32::MIN_POSITIVE { 0.0 } else { v };
         }
     });
 }
