@@ -7,7 +7,7 @@
 # Needs the validation set and the 720p frames (docs/data.md, docs/benchmarks.md say how to
 # render them) under $GDRECON_DATA (default ~/.cache/gdrecon/data), and ONNX Runtime for
 # gradnet (`bash onnx/setup.sh` once; onnx/env.sh is sourced here). Builds the release CLI in
-# $CARGO_TARGET_DIR (default target/). Takes about 20 minutes on 2 cores; run it on an
+# $CARGO_TARGET_DIR (default target/). Takes 25-30 minutes on 2 cores; run it on an
 # otherwise idle machine (summary.md records the load average). Re-running overwrites every
 # output; nothing else is touched.
 #
@@ -47,7 +47,7 @@ cargo build --release --locked --bin gdrecon
 bin="$target/release/gdrecon"
 start=$SECONDS
 
-echo "== 1/4 validation set: every variant, runs 3 (about 8 minutes)"
+echo "== 1/4 validation set: every variant, runs 3 (about 10 minutes)"
 "$bin" bench "${val[@]}" --methods l2,l1,filter,gradnet --sweep --runs 3 --warmup 1 \
   "${threads[@]}" --out-dir "$out" \
   --title "Validation set: 320 x 180, six scenes, 4 / 16 / 64 spp, 4096 spp references"
