@@ -12,13 +12,18 @@ use gdrecon::{
     Progress, Report,
 };
 
-/// The bundled sample placed at the right of a frame `pad` pixels wider, left part empty.
-fn half_empty(pad: usize) -> Frame {
-    let sample = io::read_bundle(
+/// The bundled sample frame.
+fn sample() -> Frame {
+    io::read_bundle(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data/sample.exr"),
         Policy::Replace,
     )
-    .unwrap();
+    .unwrap()
+}
+
+/// The bundled sample placed at the right of a frame `pad` pixels wider, left part empty.
+fn half_empty(pad: usize) -> Frame {
+    let sample = sample();
     let (w, h) = sample.size();
     let widen = |img: &Image| {
         Image::from_fn(img.channels(), h, w + pad, |(c, y, x)| {
@@ -98,11 +103,7 @@ fn gradnet_skips_empty_tiles() {
 /// The sample with its right `w` columns replaced by the 4096 spp reference, declared
 /// converged there (variance 0, gradients the reference's exact differences).
 fn half_converged() -> Frame {
-    let sample = io::read_bundle(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data/sample.exr"),
-        Policy::Replace,
-    )
-    .unwrap();
+    let sample = sample();
     let (w, h) = sample.size();
     let reference = sample.reference().unwrap();
     let converged = |x: usize| x >= w;
@@ -190,11 +191,7 @@ fn gradnet_keeps_converged_tiles() {
 fn write_frames() {
     let dir = std::path::PathBuf::from(std::env::var("GDR_SKIP_DIR").expect("GDR_SKIP_DIR"));
     std::fs::create_dir_all(&dir).unwrap();
-    let sample = io::read_bundle(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data/sample.exr"),
-        Policy::Replace,
-    )
-    .unwrap();
+    let sample = sample();
     // Control: the noisy sample twice, side by side (same size as the others).
     let (w, h) = sample.size();
     let twice =

@@ -162,19 +162,42 @@ mod enabled {
             if let Some(net) = &self.nets[slot] {
                 return Ok(net.clone());
             }
-            let bytes = match &self.config.model {
-                Some(path) => model::from_file(path)?,
-                None => model::embedded(variant)?,
-            };
+            // Keyed by where the model comes from, so that a second plan on the context neither
+            // re-reads nor re-hashes 25 MB: the check runs once, when the session is made. (A
+            // model file is therefore read once per context.)
             let threads = self.context.threads();
-            let key = format!("gradnet:{}:{threads}", bytes.sha256);
-            let runtime_path = self.config.runtime.clone();
+            let source = match &self.config.model {
+                Some(path) => format!("file {}", path.display()),
+                None => format!("embedded {}", variant.file_name()),
+            };
+            let key = format!("gradnet: {source}: {threads} threads");
+            let (model_path, runtime_path) =
+                (self.config.model.clone(), self.config.runtime.clone());
             let net = self.context.shared(&key, || {
+                let bytes = match &model_path {
+                    Some(path) => model::from_file(path)?,
+                    None => model::embedded(variant)?,
+                };
                 let rt = runtime::runtime(runtime_path.as_deref())?;
                 Ok(Mutex::new(Net::new(&rt.env, &bytes, threads)?))
             })?;
             self.nets[slot] = Some(net.clone());
             Ok(net)
+        }
+    }
+
+    /// Copies the frame's colour into `out` over `tile`'s core (inside the frame).
+    fn copy_base_core(frame: &Frame, tile: Tile, out: &mut Image) {
+        let (w, h) = frame.size();
+        let (rows, cols) = (
+            tile.y.core_start..tile.y.core_end.min(h),
+            tile.x.core_start..tile.x.core_end.min(w),
+        );
+        for c in 0..3 {
+            let src = frame.color().plane(c);
+            out.plane_mut(c)
+                .slice_mut(s![rows.clone(), cols.clone()])
+                .assign(&src.slice(s![rows.clone(), cols.clone()]));
         }
     }
 
@@ -304,37 +327,23 @@ mod enabled {
                     h: tile.y.size,
                     w: tile.x.size,
                 };
-                if window_is_empty(frame, self.map, win) {
-                    // No light and no gradient anywhere the network would look: the answer is
-                    // black (the network itself would add its bias), and the run is skipped.
+                // Nothing for the network to do where its whole window is black (no light, no
+                // gradient: the network would only add its bias) or converged: the base colour
+                // is the answer (black in the first case).
+                let skip = if window_is_empty(frame, self.map, win) {
                     empty_tiles += 1;
-                    for c in 0..3 {
-                        let mut plane = out.plane_mut(c);
-                        for py in tile.y.core_start..tile.y.core_end.min(h) {
-                            for px in tile.x.core_start..tile.x.core_end.min(w) {
-                                plane[[py, px]] = 0.0;
-                            }
-                        }
-                    }
-                    done += 3.0;
-                    progress.update(0.97 * done / runs)?;
-                    continue;
-                }
-                if converged
+                    true
+                } else if converged
                     .as_deref()
                     .is_some_and(|m| window_is_converged(m, w, self.map, win))
                 {
-                    // Everything the network would see has converged: keep the base colour.
                     converged_tiles += 1;
-                    for c in 0..3 {
-                        let src = frame.color().plane(c);
-                        let mut plane = out.plane_mut(c);
-                        for py in tile.y.core_start..tile.y.core_end.min(h) {
-                            for px in tile.x.core_start..tile.x.core_end.min(w) {
-                                plane[[py, px]] = src[[py, px]];
-                            }
-                        }
-                    }
+                    true
+                } else {
+                    false
+                };
+                if skip {
+                    copy_base_core(frame, tile, out);
                     done += 3.0;
                     progress.update(0.97 * done / runs)?;
                     continue;
