@@ -315,11 +315,8 @@ impl<'a> Sweeper<'a> {
         match (a, b) {
             (Some(a), Some(b)) => {
                 let o = r * w;
-                let (m, s) = (&self.wt.my[o..o + w], &self.wt.sy[o..o + w]);
-                let t = &self.gy[c * self.wt.w * self.wt.h + o..][..w];
-                for x in 0..w {
-                    out[x] = flux(m[x], s[x], b[x] - a[x], t[x]);
-                }
+                let t = &self.gy[c * w * self.wt.h + o..][..w];
+                edge_fluxes(&self.wt.my[o..o + w], &self.wt.sy[o..o + w], t, a, b, out);
             }
             _ => out.fill(0.0),
         }
@@ -340,21 +337,51 @@ impl<'a> Sweeper<'a> {
     ) {
         let w = self.wt.w;
         let o = r * w;
-        let (m, s) = (&self.wt.mx[o..o + w], &self.wt.sx[o..o + w]);
-        let t = &self.gx[c * w * self.wt.h + o..][..w];
+        let t = &self.gx[c * w * self.wt.h + o..][..w - 1];
         let mid = rows.mid;
         across[0] = 0.0;
-        for x in 0..w - 1 {
-            across[x + 1] = flux(m[x], s[x], mid[x + 1] - mid[x], t[x]);
-        }
         across[w] = 0.0;
-        for x in 0..w {
-            // g = 0 - right + left - below + above, as the literal sweep accumulates it (a
-            // missing edge contributes an exact zero, which only changes the sign of a zero
-            // g, which the flush makes irrelevant).
-            let g = 0.0 - across[x + 1] + across[x] - below[x] + above[x];
-            dst[x] = flush(mid[x] - step * g);
-        }
+        edge_fluxes(
+            &self.wt.mx[o..o + w - 1],
+            &self.wt.sx[o..o + w - 1],
+            t,
+            &mid[..w - 1],
+            &mid[1..],
+            &mut across[1..w],
+        );
+        update(mid, &across[1..], &across[..w], below, above, dst, step);
+    }
+}
+
+/// `out = flux(m, s, b - a, t)` element-wise (the kernels below are compiled for AVX2 too).
+#[multiversion::multiversion(targets("x86_64+avx2+fma"))]
+fn edge_fluxes(m: &[f32], s: &[f32], t: &[f32], a: &[f32], b: &[f32], out: &mut [f32]) {
+    let n = out.len();
+    let (m, s, t, a, b) = (&m[..n], &s[..n], &t[..n], &a[..n], &b[..n]);
+    for x in 0..n {
+        out[x] = flux(m[x], s[x], b[x] - a[x], t[x]);
+    }
+}
+
+/// `dst = flush(mid - step * g)` with `g = 0 - right + left - below + above`, as the literal
+/// sweep accumulates it (a missing edge contributes an exact zero, which can only change the
+/// sign of a zero `g`, which the flush makes irrelevant).
+#[multiversion::multiversion(targets("x86_64+avx2+fma"))]
+fn update(
+    mid: &[f32],
+    right: &[f32],
+    left: &[f32],
+    below: &[f32],
+    above: &[f32],
+    dst: &mut [f32],
+    step: f32,
+) {
+    let n = dst.len();
+    let (mid, right, left, below, above) =
+        (&mid[..n], &right[..n], &left[..n], &below[..n], &above[..n]);
+    for x in 0..n {
+        let g = 0.0 - right[x] + left[x] - below[x] + above[x];
+        dst[x] = flush(mid[x] - step * g);
     }
 }
 
