@@ -90,6 +90,15 @@
 // The version as one number, `MAJOR * 10000 + MINOR * 100 + PATCH` (what `gdr_version` returns).
 #define GDR_VERSION 100
 
+// Filter `"guide"`: RDFC's first pass, as the authors' release (the default).
+#define GDR_FILTER_GUIDE_RDFC 0
+
+// Filter `"guide"`: the screened Poisson L1 reconstruction.
+#define GDR_FILTER_GUIDE_L1 1
+
+// Filter `"guide"`: no pre-denoiser, the noisy colour itself (an ablation).
+#define GDR_FILTER_GUIDE_NONE 2
+
 // Status codes returned by every fallible function (`GDR_ERROR_NONE` is success).
 enum gdr_error
 #ifdef __cplusplus
@@ -231,7 +240,7 @@ gdr_error gdr_filter_release(gdr_filter **filter);
 // Set a float parameter: `"alpha"` (screened Poisson weight), `"spp"` (0 = unknown); l1 also `"cg_tolerance"`.
 gdr_error gdr_filter_set_float(gdr_filter *filter, const char *name, float value);
 
-// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step); gradnet `"tile_size"` (frames above tile_size² pixels run in tiles of that side; 0 = never).
+// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step); gradnet `"tile_size"` (frames above tile_size² pixels run in tiles of that side; 0 = never); filter `"radius"` (3 or 4, default 4), `"levels"` (1 to 4, default 2), `"enhance_iterations"` (default 1000; 0 = no gradient enhancement), `"guide"` (a `GDR_FILTER_GUIDE_*` value, default RDFC).
 gdr_error gdr_filter_set_int(gdr_filter *filter, const char *name, int32_t value);
 
 // Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`; gradnet `"bias_correction"`, `"use_features"` (both default true).

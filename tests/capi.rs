@@ -200,6 +200,58 @@ fn parameters_reach_the_method() {
 }
 
 #[test]
+fn filter_parameters_reach_the_method() {
+    // The ablation settings through the C API equal the Rust API's, and a bad guide is named.
+    let frame = frame();
+    let bufs = packed_inputs(&frame);
+    let ctx = context();
+    let config = gdrecon::recon::FilterConfig {
+        radius: 3,
+        levels: 1,
+        enhance_iterations: 0,
+        guide: gdrecon::recon::FilterGuide::Colour,
+    };
+    let expected = rust_output(&frame, &MethodConfig::Filter(config));
+    let f = filter(ctx, "filter");
+    let mut out = vec![0f32; W * H * 3];
+    unsafe {
+        ok(gdr_filter_set_float(
+            f,
+            c"spp".as_ptr(),
+            frame.spp().unwrap(),
+        ));
+        ok(gdr_filter_set_int(f, c"radius".as_ptr(), 3));
+        ok(gdr_filter_set_int(f, c"levels".as_ptr(), 1));
+        ok(gdr_filter_set_int(f, c"enhance_iterations".as_ptr(), 0));
+        let msg = fails(
+            gdr_filter_set_int(f, c"guide".as_ptr(), 7),
+            GDR_ERROR_INVALID_ARGUMENT,
+        );
+        assert!(msg.contains("GDR_FILTER_GUIDE_NONE"), "{msg}");
+        ok(gdr_filter_set_int(
+            f,
+            c"guide".as_ptr(),
+            GDR_FILTER_GUIDE_NONE,
+        ));
+        let (mut r, mut l, mut e, mut g) = (0i32, 0i32, -1i32, 0i32);
+        ok(gdr_filter_get_int(f, c"radius".as_ptr(), &mut r));
+        ok(gdr_filter_get_int(f, c"levels".as_ptr(), &mut l));
+        ok(gdr_filter_get_int(
+            f,
+            c"enhance_iterations".as_ptr(),
+            &mut e,
+        ));
+        ok(gdr_filter_get_int(f, c"guide".as_ptr(), &mut g));
+        assert_eq!((r, l, e, g), (3, 1, 0, GDR_FILTER_GUIDE_NONE));
+        set_packed(f, &bufs);
+        run(f, &mut out);
+        gdr_filter_release(&mut { f });
+        gdr_context_release(&mut { ctx });
+    }
+    assert!(same_bits(&out, &expected));
+}
+
+#[test]
 fn strided_planar_and_in_place_layouts_equal_packed() {
     let frame = frame();
     let expected = rust_output(&frame, &MethodConfig::default_for(Method::PoissonL2));

@@ -14,7 +14,7 @@ use crate::context::Context;
 use crate::frame::{FrameBuilder, Layer};
 use crate::image::Image;
 use crate::progress::Progress;
-use crate::recon::{Method, MethodConfig, Plan};
+use crate::recon::{FilterGuide, Method, MethodConfig, Plan};
 use crate::validate::Policy;
 
 /// A reconstruction filter: one method, its parameters, image views and plan (opaque).
@@ -77,6 +77,13 @@ impl Value {
 /// Deliberately panics when set to true: lets tests check that no panic crosses the ABI.
 const TEST_PANIC: &str = "internal_test_panic";
 
+/// Filter `"guide"`: RDFC's first pass, as the authors' release (the default).
+pub const GDR_FILTER_GUIDE_RDFC: i32 = 0;
+/// Filter `"guide"`: the screened Poisson L1 reconstruction.
+pub const GDR_FILTER_GUIDE_L1: i32 = 1;
+/// Filter `"guide"`: no pre-denoiser, the noisy colour itself (an ablation).
+pub const GDR_FILTER_GUIDE_NONE: i32 = 2;
+
 /// The parameters of a method, with their types.
 fn params(method: Method) -> &'static [(&'static str, Kind)] {
     use Kind::*;
@@ -95,6 +102,14 @@ fn params(method: Method) -> &'static [(&'static str, Kind)] {
             ("tile_size", Int),
             ("bias_correction", Bool),
             ("use_features", Bool),
+            ("spp", Float),
+            ("strict", Bool),
+        ],
+        Method::Filter => &[
+            ("radius", Int),
+            ("levels", Int),
+            ("enhance_iterations", Int),
+            ("guide", Int),
             ("spp", Float),
             ("strict", Bool),
         ],
@@ -166,6 +181,27 @@ impl State {
             ("tile_size", M::GradNet(c), V::Int(i)) => c.tile_size = to_u32(name, i)? as usize,
             ("bias_correction", M::GradNet(c), V::Bool(b)) => c.bias_correction = b,
             ("use_features", M::GradNet(c), V::Bool(b)) => c.use_features = b,
+            ("radius", M::Filter(c), V::Int(i)) => c.radius = to_u32(name, i)? as usize,
+            ("levels", M::Filter(c), V::Int(i)) => c.levels = to_u32(name, i)? as usize,
+            ("enhance_iterations", M::Filter(c), V::Int(i)) => {
+                c.enhance_iterations = to_u32(name, i)?
+            }
+            ("guide", M::Filter(c), V::Int(i)) => {
+                c.guide = match i {
+                    GDR_FILTER_GUIDE_RDFC => FilterGuide::Rdfc,
+                    GDR_FILTER_GUIDE_L1 => FilterGuide::PoissonL1,
+                    GDR_FILTER_GUIDE_NONE => FilterGuide::Colour,
+                    _ => {
+                        return err(
+                            GDR_ERROR_INVALID_ARGUMENT,
+                            format!(
+                                "guide is {i}, expected GDR_FILTER_GUIDE_RDFC (0), \
+                                 GDR_FILTER_GUIDE_L1 (1) or GDR_FILTER_GUIDE_NONE (2)"
+                            ),
+                        )
+                    }
+                }
+            }
             _ => {
                 return err(
                     GDR_ERROR_UNKNOWN,
@@ -199,6 +235,16 @@ impl State {
             }
             ("bias_correction", M::GradNet(c)) => Value::Bool(c.bias_correction),
             ("use_features", M::GradNet(c)) => Value::Bool(c.use_features),
+            ("radius", M::Filter(c)) => Value::Int(i32::try_from(c.radius).unwrap_or(i32::MAX)),
+            ("levels", M::Filter(c)) => Value::Int(i32::try_from(c.levels).unwrap_or(i32::MAX)),
+            ("enhance_iterations", M::Filter(c)) => {
+                Value::Int(i32::try_from(c.enhance_iterations).unwrap_or(i32::MAX))
+            }
+            ("guide", M::Filter(c)) => Value::Int(match c.guide {
+                FilterGuide::Rdfc => GDR_FILTER_GUIDE_RDFC,
+                FilterGuide::PoissonL1 => GDR_FILTER_GUIDE_L1,
+                FilterGuide::Colour => GDR_FILTER_GUIDE_NONE,
+            }),
             _ => {
                 return err(
                     GDR_ERROR_UNKNOWN,
@@ -397,7 +443,7 @@ pub unsafe extern "C" fn gdr_filter_set_float(
     })
 }
 
-/// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step); gradnet `"tile_size"` (frames above tile_size² pixels run in tiles of that side; 0 = never).
+/// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step); gradnet `"tile_size"` (frames above tile_size² pixels run in tiles of that side; 0 = never); filter `"radius"` (3 or 4, default 4), `"levels"` (1 to 4, default 2), `"enhance_iterations"` (default 1000; 0 = no gradient enhancement), `"guide"` (a `GDR_FILTER_GUIDE_*` value, default RDFC).
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_set_int(
     filter: *mut gdr_filter,

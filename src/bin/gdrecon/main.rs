@@ -83,6 +83,8 @@ enum GuideArg {
     Rdfc,
     /// Screened Poisson L1.
     L1,
+    /// None: the noisy colour (the pre-denoiser's ablation).
+    None,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -125,6 +127,9 @@ pub(crate) struct MethodArgs {
     /// filter: resolution levels (1 to 4).
     #[arg(long, default_value_t = FilterConfig::default().levels)]
     filter_levels: usize,
+    /// filter: gradient-enhancement iterations (0: no enhancement, the ablation).
+    #[arg(long, default_value_t = FilterConfig::default().enhance_iterations)]
+    filter_enhance_iterations: u32,
     /// gradnet: ONNX Runtime library to load first (then ORT_DYLIB_PATH, a library next to
     /// gdrecon, the project's Python environment).
     #[arg(long)]
@@ -178,11 +183,12 @@ impl MethodArgs {
         FilterConfig {
             radius: self.filter_radius,
             levels: self.filter_levels,
+            enhance_iterations: self.filter_enhance_iterations,
             guide: match self.filter_guide {
                 GuideArg::Rdfc => FilterGuide::Rdfc,
                 GuideArg::L1 => FilterGuide::PoissonL1,
+                GuideArg::None => FilterGuide::Colour,
             },
-            ..FilterConfig::default()
         }
     }
 

@@ -30,6 +30,8 @@ pub enum FilterGuide {
     /// guide (relMSE 8.6e-4 vs 1.4e-3), which the filter's output follows closely at low spp
     /// since the guide term's weight is `8 / sqrt(spp)`.
     PoissonL1,
+    /// No pre-denoiser: the noisy colour itself (the ablation of the pre-denoiser).
+    Colour,
 }
 
 /// Settings of the filter method.
@@ -41,7 +43,8 @@ pub struct FilterConfig {
     /// Default 2, as the release (bundled sample: 1.37e-3 -> 1.15e-3 with the RDFC guide,
     /// 7.9e-4 -> 6.1e-4 with the L1 guide).
     pub levels: usize,
-    /// Gradient-enhancement iterations of the reference schedule. Default 1000.
+    /// Gradient-enhancement iterations of the reference schedule. Default 1000; 0 skips the
+    /// enhancement (its ablation: the QP's first bias term then uses the guide's differences).
     pub enhance_iterations: u32,
     /// The pre-denoiser. Default [`FilterGuide::Rdfc`], the release's.
     pub guide: FilterGuide,
@@ -212,27 +215,35 @@ impl Filter {
         } else {
             None
         };
-        let lambda = 8.0 / spp.sqrt();
-        let weights = enhance::EnhanceWeights::new(
-            &inp.dx,
-            &inp.dy,
-            inp.albedo.as_ref(),
-            inp.normal.as_ref(),
-            lambda,
-        );
-        let (enhanced, outcome) = report.time(&format!("enhance (level {depth})"), || {
-            enhance::enhance_reference(
-                &inp.guide,
+        let enhanced = if self.cfg.enhance_iterations == 0 {
+            if depth == 0 {
+                report.skip("gradient enhancement (0 iterations): the guide stands in");
+            }
+            inp.guide.clone()
+        } else {
+            let lambda = 8.0 / spp.sqrt();
+            let weights = enhance::EnhanceWeights::new(
                 &inp.dx,
                 &inp.dy,
-                &weights,
-                self.cfg.enhance_iterations,
-            )
-        });
-        report.note(format!(
-            "level {depth} ({w} x {h}): enhancement {} iterations, {} reverts, energy {:.4e} -> {:.4e}",
-            self.cfg.enhance_iterations, outcome.reverts, outcome.loss_start, outcome.loss_end
-        ));
+                inp.albedo.as_ref(),
+                inp.normal.as_ref(),
+                lambda,
+            );
+            let (enhanced, outcome) = report.time(&format!("enhance (level {depth})"), || {
+                enhance::enhance_reference(
+                    &inp.guide,
+                    &inp.dx,
+                    &inp.dy,
+                    &weights,
+                    self.cfg.enhance_iterations,
+                )
+            });
+            report.note(format!(
+                "level {depth} ({w} x {h}): enhancement {} iterations, {} reverts, energy {:.4e} -> {:.4e}",
+                self.cfg.enhance_iterations, outcome.reverts, outcome.loss_start, outcome.loss_end
+            ));
+            enhanced
+        };
         let level = qp::QpLevel {
             img: &inp.colour,
             var: &inp.var,
@@ -346,6 +357,10 @@ impl Reconstructor for Filter {
                 l1.reconstruct_into(&clean, &mut out, &mut sub, &Progress::none())?;
                 Ok::<_, Error>(out)
             })?,
+            FilterGuide::Colour => {
+                report.skip("pre-denoiser (guide: the noisy colour)");
+                colour.clone()
+            }
         };
         progress.update(0.4)?;
         let inputs = LevelInputs {

@@ -38,7 +38,13 @@ pub const DEFAULT_SETTING: &str = "default";
 pub fn sweep_names(method: Method) -> Vec<String> {
     let names: &[&str] = match method {
         Method::PoissonL1 => &["l1", "l1:irls=5", "l1:published"],
-        Method::Filter => &["filter", "filter:levels=1", "filter:guide=l1"],
+        Method::Filter => &[
+            "filter",
+            "filter:levels=1",
+            "filter:guide=l1",
+            "filter:enhance=0",
+            "filter:guide=none",
+        ],
         Method::GradNet => &["gradnet", "gradnet:nofeat", "gradnet:nobias"],
         _ => return vec![method.name().to_owned()],
     };
@@ -108,7 +114,7 @@ fn options_help(method: Method) -> &'static str {
     match method {
         Method::PoissonL2 => "alpha=X",
         Method::PoissonL1 => "alpha=X, irls=N, cg=N, tol=X, published, fast",
-        Method::Filter => "levels=N, radius=N, guide=rdfc|l1",
+        Method::Filter => "levels=N, radius=N, enhance=N (0: off), guide=rdfc|l1|none",
         Method::GradNet => "nofeat, nobias, tile=N",
         _ => "none",
     }
@@ -153,6 +159,10 @@ fn apply_option(method: Method, option: &str, args: &mut MethodArgs) -> Result<(
             args.filter_radius = number(key, v)?;
             true
         }
+        (Method::Filter, "enhance", Some(v)) => {
+            args.filter_enhance_iterations = number(key, v)?;
+            true
+        }
         (Method::Filter, "guide", Some(v)) => {
             args.filter_guide = guide(v)?;
             true
@@ -193,6 +203,9 @@ fn guide(value: &str) -> Result<GuideArg, String> {
     match value {
         "rdfc" => Ok(GuideArg::Rdfc),
         "l1" => Ok(GuideArg::L1),
-        other => Err(format!("option guide: '{other}' is not one of rdfc, l1")),
+        "none" => Ok(GuideArg::None),
+        other => Err(format!(
+            "option guide: '{other}' is not one of rdfc, l1, none"
+        )),
     }
 }
