@@ -467,7 +467,7 @@ static void test_cancellation(gdr_context* ctx) {
                round ? "gdr_filter_cancel" : "callback returns false", latency_ms);
         CHECK(s.calls == 2);
         CHECK(s.reentrant == GDR_ERROR_INVALID_OPERATION);
-        if (!no_timing) CHECK(latency_ms < 100.0);
+        if (!no_timing) CHECK(latency_ms < 1000.0); /* ~2 ms idle; generous under load */
     }
     for (i = 0; i < w * h * 3; i++) untouched &= out[i] == 0.0f;
     CHECK(untouched); /* a cancelled execute leaves the output alone */
