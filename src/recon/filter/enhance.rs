@@ -72,19 +72,24 @@ impl EnhanceWeights {
             sx: vec![0.0; n],
             sy: vec![0.0; n],
         };
-        for y in 0..h {
-            for x in 0..w {
-                let i = y * w + x;
-                if x + 1 < w {
-                    wts.mx[i] = fid(dx, i);
-                    wts.sx[i] = smooth(i, i + 1);
+        wts.mx
+            .par_chunks_mut(w)
+            .zip(wts.sx.par_chunks_mut(w))
+            .zip(wts.my.par_chunks_mut(w).zip(wts.sy.par_chunks_mut(w)))
+            .enumerate()
+            .for_each(|(y, ((mx, sx), (my, sy)))| {
+                for x in 0..w {
+                    let i = y * w + x;
+                    if x + 1 < w {
+                        mx[x] = fid(dx, i);
+                        sx[x] = smooth(i, i + 1);
+                    }
+                    if y + 1 < h {
+                        my[x] = fid(dy, i);
+                        sy[x] = smooth(i, i + w);
+                    }
                 }
-                if y + 1 < h {
-                    wts.my[i] = fid(dy, i);
-                    wts.sy[i] = smooth(i, i + w);
-                }
-            }
-        }
+            });
         wts
     }
 }

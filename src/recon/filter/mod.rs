@@ -222,14 +222,14 @@ impl Filter {
             inp.guide.clone()
         } else {
             let lambda = 8.0 / spp.sqrt();
-            let weights = enhance::EnhanceWeights::new(
-                &inp.dx,
-                &inp.dy,
-                inp.albedo.as_ref(),
-                inp.normal.as_ref(),
-                lambda,
-            );
             let (enhanced, outcome) = report.time(&format!("enhance (level {depth})"), || {
+                let weights = enhance::EnhanceWeights::new(
+                    &inp.dx,
+                    &inp.dy,
+                    inp.albedo.as_ref(),
+                    inp.normal.as_ref(),
+                    lambda,
+                );
                 enhance::enhance_reference(
                     &inp.guide,
                     &inp.dx,
