@@ -48,7 +48,7 @@ fn sweep_writes_every_report_file() {
     assert_eq!(
         lines.next().unwrap(),
         "scene,spp,method,setting,scale,width,height,pixels,threads,runs,median_s,min_s,max_s,\
-         rel_mse,peak_rss_mib"
+         rel_mse,peak_rss_mib,stages"
     );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     let variants: Vec<(&str, &str)> = rows.iter().map(|r| (r[2], r[3])).collect();
@@ -62,7 +62,14 @@ fn sweep_writes_every_report_file() {
         ]
     );
     for r in &rows {
-        assert_eq!(r.len(), 15, "{r:?}");
+        assert_eq!(r.len(), 16, "{r:?}");
+        // Stage medians: l2 times its right-hand side and its DCT solve.
+        if r[2] == "l2" {
+            assert!(
+                r[15].starts_with("rhs=") && r[15].contains(";dct solve="),
+                "{r:?}"
+            );
+        }
         assert_eq!((r[0], r[1], r[5], r[6]), ("synthetic", "16", "48", "32"));
         let rel: f64 = r[13].parse().unwrap();
         assert!(rel > 0.0 && rel < 1.0, "{r:?}");

@@ -42,7 +42,12 @@ pub struct Row {
     pub rel_mse: Option<f64>,
     /// Peak resident memory since the variant started, MiB.
     pub peak_rss_mib: Option<f64>,
+    /// Median seconds of each stage the method's report times, in execution order.
+    pub stages: StageMedians,
 }
+
+/// `(stage name, median seconds)` in execution order.
+pub type StageMedians = Vec<(String, f64)>;
 
 impl Row {
     /// Pixels per frame.
@@ -76,12 +81,13 @@ pub fn time_variant(
         let mut plan = Plan::new(context, &variant.config, size.0, size.1)?;
         let mut out = Image::zeros(3, size.1, size.0);
         for f in frames.iter().filter(|f| f.frame.size() == size) {
-            let times = time_runs(&mut plan, f, &mut out, schedule)?;
+            let (times, stages) = time_runs(&mut plan, f, &mut out, schedule)?;
             let rel_mse = match (f.frame.reference(), f.scale == 1.0) {
                 (Some(r), true) => Some(metrics::compare(&out, r)?.rel_mse),
                 _ => None,
             };
-            let row = make_row(variant, f, context.threads(), &times, rel_mse);
+            let mut row = make_row(variant, f, context.threads(), &times, rel_mse);
+            row.stages = stages;
             on_row(&row);
             rows.push(row);
         }
@@ -100,24 +106,39 @@ fn distinct_sizes(frames: &[BenchFrame]) -> Vec<(usize, usize)> {
     sizes
 }
 
-/// Warm-up runs, then the timed runs' seconds, sorted.
+/// Warm-up runs, then the timed runs' seconds, sorted, and the median of each stage.
 fn time_runs(
     plan: &mut Plan,
     f: &BenchFrame,
     out: &mut Image,
     schedule: Schedule,
-) -> gdrecon::Result<Vec<f64>> {
+) -> gdrecon::Result<(Vec<f64>, StageMedians)> {
     for _ in 0..schedule.warmup {
         plan.execute_into(&f.frame, out, &Progress::none())?;
     }
     let mut times = Vec::with_capacity(schedule.runs);
+    let mut stages: Vec<(String, Vec<f64>)> = Vec::new();
     for _ in 0..schedule.runs {
         let t = Instant::now();
-        plan.execute_into(&f.frame, out, &Progress::none())?;
+        let report = plan.execute_into(&f.frame, out, &Progress::none())?;
         times.push(t.elapsed().as_secs_f64());
+        for stage in &report.stages {
+            let secs = stage.time.as_secs_f64();
+            match stages.iter_mut().find(|(name, _)| *name == stage.name) {
+                Some((_, v)) => v.push(secs),
+                None => stages.push((stage.name.clone(), vec![secs])),
+            }
+        }
     }
     times.sort_by(f64::total_cmp);
-    Ok(times)
+    let stages = stages
+        .into_iter()
+        .map(|(name, mut v)| {
+            v.sort_by(f64::total_cmp);
+            (name, median(&v))
+        })
+        .collect();
+    Ok((times, stages))
 }
 
 /// A report row from sorted run times.
@@ -145,6 +166,7 @@ fn make_row(
         max_s: times[times.len() - 1],
         rel_mse,
         peak_rss_mib: peak_rss_mib(),
+        stages: Vec::new(),
     }
 }
 

@@ -217,6 +217,14 @@ fn print_row(r: &Row) {
         r.peak_rss_mib
             .map_or_else(|| "-".to_owned(), |p| format!("{p:.0}"))
     );
+    if r.stages.len() > 1 {
+        let stages: Vec<String> = r
+            .stages
+            .iter()
+            .map(|(name, s)| format!("{name} {s:.3}"))
+            .collect();
+        say!("    stage medians (s): {}", stages.join(", "));
+    }
 }
 
 /// Writes the five report files into `dir` (created if needed).

@@ -6,7 +6,7 @@ use std::path::Path;
 use super::measure::Row;
 
 /// The columns of `results.csv` and the keys of `results.json`, in order.
-pub const COLUMNS: [&str; 15] = [
+pub const COLUMNS: [&str; 16] = [
     "scene",
     "spp",
     "method",
@@ -22,6 +22,7 @@ pub const COLUMNS: [&str; 15] = [
     "max_s",
     "rel_mse",
     "peak_rss_mib",
+    "stages",
 ];
 
 /// A value of one column, as text for CSV and as a JSON literal.
@@ -32,7 +33,7 @@ enum Value {
 }
 
 /// The row's values in [`COLUMNS`] order.
-fn values(r: &Row) -> [Value; 15] {
+fn values(r: &Row) -> [Value; 16] {
     use Value::{Number as N, Text as T};
     let opt = |v: Option<String>| v.map_or(Value::Missing, N);
     [
@@ -51,6 +52,12 @@ fn values(r: &Row) -> [Value; 15] {
         N(format!("{:.6}", r.max_s)),
         opt(r.rel_mse.map(|v| format!("{v:.5e}"))),
         opt(r.peak_rss_mib.map(|v| format!("{v:.1}"))),
+        // Stage medians as `name=seconds` separated by semicolons (empty: one stage).
+        T(r.stages
+            .iter()
+            .map(|(name, s)| format!("{name}={s:.6}"))
+            .collect::<Vec<_>>()
+            .join(";")),
     ]
 }
 
