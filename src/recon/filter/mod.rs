@@ -4,6 +4,7 @@
 //! whose result, upsampled, guides the next finer level.
 
 pub(crate) mod enhance;
+pub(crate) mod fastmath;
 pub(crate) mod glu;
 pub(crate) mod outliers;
 pub(crate) mod qp;
