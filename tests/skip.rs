@@ -53,6 +53,15 @@ fn left_is_black(out: &Image, upto: usize) -> bool {
     (0..3).all(|c| (0..out.height()).all(|y| (0..upto).all(|x| out.at(c, x, y) == 0.0)))
 }
 
+/// The report's skip line containing `needle` (the test fails if there is none).
+fn skipped<'a>(report: &'a Report, needle: &str) -> &'a str {
+    report
+        .skipped
+        .iter()
+        .find(|s| s.contains(needle))
+        .unwrap_or_else(|| panic!("no skip line with '{needle}': {:?}", report.skipped))
+}
+
 fn stage(report: &Report, prefix: &str) -> f64 {
     report
         .stages
@@ -88,11 +97,7 @@ fn gradnet_skips_empty_tiles() {
     let mut config = GradNetConfig::default();
     config.tile_size = 256;
     let (out, report) = run(&frame, MethodConfig::GradNet(config));
-    let note = report
-        .skipped
-        .iter()
-        .find(|s| s.contains("no radiance and no gradient"))
-        .unwrap_or_else(|| panic!("{:?}", report.skipped));
+    let note = skipped(&report, "no radiance and no gradient");
     println!(
         "gradnet on 960 x 180, 640 columns empty: network {:.3} s; {note}",
         stage(&report, "network")
@@ -156,11 +161,7 @@ fn right_is_base(out: &Image, frame: &Frame, from: usize) -> bool {
 fn filter_keeps_converged_pixels() {
     let frame = half_converged();
     let (out, report) = run(&frame, MethodConfig::Filter(FilterConfig::default()));
-    let note = report
-        .skipped
-        .iter()
-        .find(|s| s.contains("converged pixels"))
-        .unwrap_or_else(|| panic!("{:?}", report.skipped));
+    let note = skipped(&report, "converged pixels");
     println!(
         "filter on 640 x 180, right half converged: qp {:.3} s; {note}",
         stage(&report, "qp")
@@ -175,11 +176,7 @@ fn gradnet_keeps_converged_tiles() {
     let mut config = GradNetConfig::default();
     config.tile_size = 232;
     let (out, report) = run(&frame, MethodConfig::GradNet(config));
-    let note = report
-        .skipped
-        .iter()
-        .find(|s| s.contains("converged"))
-        .unwrap_or_else(|| panic!("{:?}", report.skipped));
+    let note = skipped(&report, "converged");
     println!("gradnet on 640 x 180, right half converged: {note}");
     assert!(right_is_base(&out, &frame, 560));
 }
