@@ -172,4 +172,14 @@ impl Image {
     pub fn all_finite(&self) -> bool {
         self.as_slice().iter().all(|v| v.is_finite())
     }
+
+    /// Largest absolute difference to `other`, sample by sample (tests' comparisons).
+    #[cfg(test)]
+    pub(crate) fn max_abs_diff(&self, other: &Image) -> f32 {
+        self.as_slice()
+            .iter()
+            .zip(other.as_slice())
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f32::max)
+    }
 }

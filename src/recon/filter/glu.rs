@@ -282,12 +282,7 @@ mod tests {
         assert!(glu.samples.iter().all(|s| *s == Sample::Box));
         let coarse = glu.downsample(&j, false);
         let (up, _) = glu.upsample(&coarse, None);
-        let d = up
-            .as_slice()
-            .iter()
-            .zip(j.as_slice())
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f32::max);
+        let d = up.max_abs_diff(&j);
         assert!(d < 1e-5, "{d}");
     }
 

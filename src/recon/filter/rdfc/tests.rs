@@ -279,12 +279,7 @@ fn rdfc_on_frames_matches_the_straightforward_one() {
         let slow = rdfc_with(colour, &var, albedo, normal, naive_nlm_candidates);
         let t_slow = t.elapsed();
         let peak = slow.as_slice().iter().fold(0.0f32, |m, v| m.max(v.abs()));
-        let abs = fast
-            .as_slice()
-            .iter()
-            .zip(slow.as_slice())
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f32::max);
+        let abs = fast.max_abs_diff(&slow);
         let rel = max_rel(&fast, &slow, 1e-3);
         let over = (fast.as_slice().iter().zip(slow.as_slice()))
             .filter(|(a, b)| (*a - *b).abs() > 1e-4 * b.abs().max(1e-3))
@@ -310,12 +305,7 @@ fn zero_variance_returns_the_input() {
         ((x * 3 + y * 5 + c) % 7) as f32 * 0.1 + 0.05
     });
     let out = rdfc(&img, &Image::zeros(3, h, w), None, None);
-    let d = out
-        .as_slice()
-        .iter()
-        .zip(img.as_slice())
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f32::max);
+    let d = out.max_abs_diff(&img);
     assert!(d < 1e-5, "{d}");
 }
 
