@@ -12,9 +12,24 @@
 use rayon::prelude::*;
 
 /// Reflect-101 border rule (`dcb|abcd|cba`), the release's choice almost everywhere: index
-/// `i` (possibly outside `0..n`) mapped into `0..n`.
+/// `i` (possibly outside `0..n`) mapped into `0..n`. Indices inside, or one reflection away,
+/// take no division (the filter's window loops call this per tap).
 #[inline]
 pub(crate) fn reflect(i: isize, n: usize) -> usize {
+    let m = n as isize;
+    if (0..m).contains(&i) {
+        i as usize
+    } else if i < 0 && -i < m {
+        -i as usize
+    } else if i >= m && i <= 2 * m - 2 {
+        (2 * m - 2 - i) as usize
+    } else {
+        reflect_periodic(i, n)
+    }
+}
+
+/// [`reflect`] by its period, for any distance from the image.
+fn reflect_periodic(i: isize, n: usize) -> usize {
     if n == 1 {
         return 0;
     }
@@ -145,4 +160,18 @@ pub(crate) fn plane_sums(
         .chunks(rows_per_plane)
         .map(|c| c.iter().sum())
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reflect_fast_paths_equal_the_periodic_rule() {
+        for n in 1..30 {
+            for i in -70..100 {
+                assert_eq!(reflect(i, n), reflect_periodic(i, n), "{i} {n}");
+            }
+        }
+    }
 }

@@ -36,23 +36,8 @@
 use rayon::prelude::*;
 
 use super::fastmath::{exp_nonpositive, max, min};
+use super::util::reflect;
 use crate::image::Image;
-
-/// Reflect-101 index ([`super::util::reflect`]), without its division when one reflection is
-/// enough (every call here but on images smaller than the window).
-#[inline]
-fn reflect(i: isize, n: usize) -> usize {
-    let m = n as isize;
-    if (0..m).contains(&i) {
-        i as usize
-    } else if i < 0 && -i < m {
-        -i as usize
-    } else if i >= m && i <= 2 * m - 2 {
-        (2 * m - 2 - i) as usize
-    } else {
-        super::util::reflect(i, n)
-    }
-}
 
 /// One candidate filter: patch radius `f` and colour bandwidth (`None`: colour term off).
 #[derive(Clone, Copy, Debug)]

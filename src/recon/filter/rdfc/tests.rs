@@ -202,15 +202,6 @@ fn tiled_nlm_matches_the_straightforward_one() {
 }
 
 #[test]
-fn reflect_matches_the_shared_one() {
-    for n in 1..30 {
-        for i in -70..100 {
-            assert_eq!(reflect(i, n), super::super::util::reflect(i, n), "{i} {n}");
-        }
-    }
-}
-
-#[test]
 fn tiled_nlm_does_not_depend_on_the_thread_count() {
     let (colour, var, albedo, normal) = synthetic(TILE.0 + 5, 2 * TILE.1 + 3);
     let feats = [Feature::new(&albedo), Feature::new(&normal)];
