@@ -216,7 +216,7 @@ struct Scratch {
     /// Steps `1..steps` (the last writes the output): 3 rows x 3 channels each.
     ring: Vec<f32>,
     /// Per step and channel, the vertical fluxes of the edges above the row being computed.
-    above: Vec<f32>,
+    above: Vec<Vec<f32>>,
     /// The vertical fluxes below the row (then swapped into `above`).
     below: Vec<f32>,
     /// Horizontal fluxes with a zero on either side: `e[x + 1]` is edge `x -> x + 1`.
@@ -289,7 +289,7 @@ impl Sweeper {
         let end = |k: usize| if hi == h { h } else { hi - k };
         let mut s = Scratch {
             ring: vec![0.0; steps.saturating_sub(1) * 9 * w],
-            above: vec![0.0; steps * 3 * w],
+            above: vec![vec![0.0; w]; steps * 3],
             below: vec![0.0; w],
             across: vec![0.0; w + 1],
         };
@@ -327,13 +327,13 @@ impl Sweeper {
                         let o = ((r % 3) * 3 + c) * w;
                         &mut cur[o..o + w]
                     };
-                    let above = &mut s.above[((k - 1) * 3 + c) * w..((k - 1) * 3 + c + 1) * w];
+                    let above = &mut s.above[(k - 1) * 3 + c];
                     if r == first(k) {
                         self.vertical_fluxes(c, r.wrapping_sub(1), rows.up, Some(rows.mid), above);
                     }
                     self.vertical_fluxes(c, r, Some(rows.mid), rows.down, &mut s.below);
                     self.row(c, r, &rows, above, &s.below, &mut s.across, dst, step);
-                    above.copy_from_slice(&s.below);
+                    std::mem::swap(above, &mut s.below);
                 }
             }
         }
