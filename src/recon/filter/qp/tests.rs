@@ -32,9 +32,9 @@ fn random_problem(rng: &mut Lcg, k: usize, n: usize) -> Problem {
 }
 
 /// Lane `l` gets `problems[l % len]`; rows past a problem's own are zero.
-fn pack<const K: usize>(problems: &[Problem], n: usize) -> (Vec<[F8; K]>, Vec<F8>, Vec<F8>) {
+fn pack<const K: usize>(problems: &[Problem], n: usize) -> (Vec<[F32x; K]>, Vec<F32x>, Vec<F32x>) {
     let pick = |l: usize| &problems[l % problems.len()];
-    let lanes = |f: &dyn Fn(&Problem) -> f32| F8(std::array::from_fn(|l| f(pick(l))));
+    let lanes = |f: &dyn Fn(&Problem) -> f32| F32x(std::array::from_fn(|l| f(pick(l))));
     let b = (0..n)
         .map(|q| std::array::from_fn(|r| lanes(&|p| p.0.get(r).map_or(0.0, |row| row[q]))))
         .collect();
@@ -83,7 +83,11 @@ fn incremental_solver_equals_a_dense_evaluation() {
     fn check<const K: usize>(rng: &mut Lcg, n: usize) {
         let problems: Vec<Problem> = (0..LANES).map(|_| random_problem(rng, K, n)).collect();
         let (b, v, mut fast) = pack::<K>(&problems, n);
-        Simplex::<K> { b: &b, v: &v, n }.solve(&mut fast, M8::from_bools([true; LANES]), 3 * n + 1);
+        Simplex::<K> { b: &b, v: &v, n }.solve(
+            &mut fast,
+            Mask::from_bools([true; LANES]),
+            3 * n + 1,
+        );
         for (l, (pb, pv, w0)) in problems.iter().enumerate() {
             let mut slow: Vec<f64> = w0.iter().map(|&x| f64::from(x)).collect();
             naive(pb, pv, n, &mut slow, 3 * n + 1);
@@ -121,7 +125,7 @@ fn lanes_follow_the_scalar_solver_bit_for_bit() {
         .for_each(|row| row.iter_mut().for_each(|x| *x *= 1e-4));
     let (b, v, mut w) = pack::<9>(&problems, n);
     let active: [bool; LANES] = std::array::from_fn(|l| l != 6);
-    let iters = Simplex::<9> { b: &b, v: &v, n }.solve(&mut w, M8::from_bools(active), 3 * n + 1);
+    let iters = Simplex::<9> { b: &b, v: &v, n }.solve(&mut w, Mask::from_bools(active), 3 * n + 1);
     for (l, (pb, pv, w0)) in problems.iter().enumerate() {
         let mut scalar = w0.clone();
         let it = if active[l] {
@@ -148,7 +152,11 @@ fn solution_is_on_the_simplex_and_satisfies_kkt() {
         let mut exact = w0.clone();
         problem.solve_exact(&mut exact, 100_000, 1e-9);
         let (bl, vl, mut wl) = pack::<K>(&[(b.clone(), v.clone(), w0.clone())], n);
-        Simplex::<K> { b: &bl, v: &vl, n }.solve(&mut wl, M8::from_bools([true; LANES]), 3 * n + 1);
+        Simplex::<K> { b: &bl, v: &vl, n }.solve(
+            &mut wl,
+            Mask::from_bools([true; LANES]),
+            3 * n + 1,
+        );
         let w: Vec<f32> = wl.iter().map(|x| x.0[0]).collect();
         // The release's early-stopped cyclic solver gets close to the optimum's objective.
         let obj = |w: &[f32]| -> f64 {
