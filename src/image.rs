@@ -6,6 +6,7 @@
 //! filters) on unit-stride rows; interleaved caller buffers are copied in once at validation.
 
 use ndarray::{Array3, ArrayView2, ArrayView3, ArrayViewMut2, Axis};
+use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 
@@ -43,6 +44,28 @@ impl Image {
         Image {
             planes: Array3::from_shape_fn((channels, height, width), f),
         }
+    }
+
+    /// [`Image::from_fn`] with the rows filled in parallel (`f` must not depend on the order).
+    pub fn par_from_fn(
+        channels: usize,
+        height: usize,
+        width: usize,
+        f: impl Fn((usize, usize, usize)) -> f32 + Sync,
+    ) -> Self {
+        let mut img = Image::zeros(channels, height, width);
+        if width > 0 {
+            img.as_mut_slice()
+                .par_chunks_mut(width)
+                .enumerate()
+                .for_each(|(r, row)| {
+                    let (c, y) = (r / height, r % height);
+                    for (x, v) in row.iter_mut().enumerate() {
+                        *v = f((c, y, x));
+                    }
+                });
+        }
+        img
     }
 
     /// Copies an interleaved-or-strided view of shape `(height, width, channels)` (the natural

@@ -51,14 +51,14 @@ pub(crate) fn pad_even(img: &Image) -> Image {
     if (pw, ph) == (w, h) {
         return img.clone();
     }
-    Image::from_fn(img.channels(), ph, pw, |(c, y, x)| {
+    Image::par_from_fn(img.channels(), ph, pw, |(c, y, x)| {
         img.at(c, reflect(x as isize, w), reflect(y as isize, h))
     })
 }
 
 /// Crops to `w` x `h` (the top-left corner).
 pub(crate) fn crop(img: &Image, w: usize, h: usize) -> Image {
-    Image::from_fn(img.channels(), h, w, |(c, y, x)| img.at(c, x, y))
+    Image::par_from_fn(img.channels(), h, w, |(c, y, x)| img.at(c, x, y))
 }
 
 impl Glu {
@@ -77,8 +77,8 @@ impl Glu {
             fit: Vec::new(),
         };
         let coarse = glu.downsample(j, false);
-        let errors = glu.refit(j, &coarse);
-        let mut changed = false;
+        let errors = glu.refit(j, &coarse, None);
+        let mut changed = vec![false; cw * ch];
         for by in 0..ch {
             for bx in 0..cw {
                 let mut worst = (ERROR_THRESHOLD, None);
@@ -92,35 +92,46 @@ impl Glu {
                 }
                 if let (_, Some((ii, jj))) = worst {
                     glu.samples[by * cw + bx] = Sample::Point(ii, jj);
-                    changed = true;
+                    changed[by * cw + bx] = true;
                 }
             }
         }
-        if changed {
+        if changed.contains(&true) {
+            // Only the fine pixels with a point-sampled block among their 9 candidates can fit
+            // differently: the box blocks' values did not change.
             let coarse = glu.downsample(j, false);
-            glu.refit(j, &coarse);
+            glu.refit(j, &coarse, Some(&changed));
         }
         glu
     }
 
-    /// Fits every fine pixel to the coarse guide; returns the fit errors.
-    fn refit(&mut self, j: &Image, coarse: &Image) -> Vec<f32> {
+    /// The 9 coarse candidates of fine pixel `(x, y)`: the 3 x 3 neighbours of its parent
+    /// (reflect-101), row by row.
+    fn candidates(&self, x: usize, y: usize) -> [usize; 9] {
+        let (cw, ch) = self.coarse;
+        let (px, py) = ((x / 2) as isize, (y / 2) as isize);
+        std::array::from_fn(|k| {
+            let (dx, dy) = ((k % 3) as isize - 1, (k / 3) as isize - 1);
+            reflect(py + dy, ch) * cw + reflect(px + dx, cw)
+        })
+    }
+
+    /// Fits the fine pixels to the coarse guide (all of them, or those with a candidate in
+    /// `only`, the others keeping their fit); returns the fit errors (0 where not refitted).
+    fn refit(&mut self, j: &Image, coarse: &Image, only: Option<&[bool]>) -> Vec<f32> {
         let (w, h) = self.fine;
         let (cw, ch) = self.coarse;
         let nc = j.channels();
         let (fs, cs) = (j.as_slice(), coarse.as_slice());
         let (n, cn) = (w * h, cw * ch);
+        let old = std::mem::take(&mut self.fit);
         let results: Vec<((u32, u32, f32), f32)> = (0..n)
             .into_par_iter()
             .map(|p| {
-                let (x, y) = (p % w, p / w);
-                let (px, py) = ((x / 2) as isize, (y / 2) as isize);
-                let mut cand = [0usize; 9];
-                let mut k = 0;
-                for dy in -1..=1 {
-                    for dx in -1..=1 {
-                        cand[k] = reflect(py + dy, ch) * cw + reflect(px + dx, cw);
-                        k += 1;
+                let cand = self.candidates(p % w, p / w);
+                if let Some(only) = only {
+                    if !cand.iter().any(|&q| only[q]) {
+                        return (old[p], 0.0);
                     }
                 }
                 // With u_k = t - J[cand k], every pair's fit comes from the Gram matrix of the
@@ -168,7 +179,7 @@ impl Glu {
     /// variance (`variance = true`) of a box block is the variance of the mean, sum / 16.
     pub fn downsample(&self, img: &Image, variance: bool) -> Image {
         let (cw, ch) = self.coarse;
-        Image::from_fn(img.channels(), ch, cw, |(c, y, x)| {
+        Image::par_from_fn(img.channels(), ch, cw, |(c, y, x)| {
             match self.samples[y * cw + x] {
                 Sample::Box => {
                     let s = img.at(c, 2 * x, 2 * y)
@@ -186,16 +197,12 @@ impl Glu {
         })
     }
 
-    /// The fine pixels a coarse pixel stands for.
-    fn members(&self, x: usize, y: usize) -> Vec<(usize, usize)> {
+    /// The fine pixels a coarse pixel stands for (the first `len` of the array).
+    fn members(&self, x: usize, y: usize) -> ([(usize, usize); 4], usize) {
+        let (fx, fy) = (2 * x, 2 * y);
         match self.samples[y * self.coarse.0 + x] {
-            Sample::Box => vec![
-                (2 * x, 2 * y),
-                (2 * x + 1, 2 * y),
-                (2 * x, 2 * y + 1),
-                (2 * x + 1, 2 * y + 1),
-            ],
-            Sample::Point(i, j) => vec![(2 * x + i as usize, 2 * y + j as usize)],
+            Sample::Box => ([(fx, fy), (fx + 1, fy), (fx, fy + 1), (fx + 1, fy + 1)], 4),
+            Sample::Point(i, j) => ([(fx + i as usize, fy + j as usize); 4], 1),
         }
     }
 
@@ -218,23 +225,23 @@ impl Glu {
             s
         };
         let edge = |c: usize, a: (usize, usize), b: (usize, usize)| -> f32 {
-            let (ma, mb) = (self.members(a.0, a.1), self.members(b.0, b.1));
+            let ((ma, la), (mb, lb)) = (self.members(a.0, a.1), self.members(b.0, b.1));
             let mut s = 0.0;
-            for &p in &ma {
-                for &q in &mb {
+            for &p in &ma[..la] {
+                for &q in &mb[..lb] {
                     s += path(c, p, q);
                 }
             }
-            s / (ma.len() * mb.len()) as f32
+            s / (la * lb) as f32
         };
-        let cdx = Image::from_fn(3, ch, cw, |(c, y, x)| {
+        let cdx = Image::par_from_fn(3, ch, cw, |(c, y, x)| {
             if x + 1 < cw {
                 edge(c, (x, y), (x + 1, y))
             } else {
                 0.0
             }
         });
-        let cdy = Image::from_fn(3, ch, cw, |(c, y, x)| {
+        let cdy = Image::par_from_fn(3, ch, cw, |(c, y, x)| {
             if y + 1 < ch {
                 edge(c, (x, y), (x, y + 1))
             } else {
@@ -250,13 +257,13 @@ impl Glu {
         let (cw, ch) = self.coarse;
         let cn = cw * ch;
         let s = img.as_slice();
-        let up = Image::from_fn(img.channels(), h, w, |(c, y, x)| {
+        let up = Image::par_from_fn(img.channels(), h, w, |(c, y, x)| {
             let (a, b, wt) = self.fit[y * w + x];
             wt * s[c * cn + a as usize] + (1.0 - wt) * s[c * cn + b as usize]
         });
         let var = variance.map(|v| {
             let vs = v.as_slice();
-            Image::from_fn(v.channels(), h, w, |(c, y, x)| {
+            Image::par_from_fn(v.channels(), h, w, |(c, y, x)| {
                 let (a, b, wt) = self.fit[y * w + x];
                 wt * wt * vs[c * cn + a as usize]
                     + (1.0 - wt) * (1.0 - wt) * vs[c * cn + b as usize]

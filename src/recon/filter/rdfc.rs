@@ -76,6 +76,7 @@ impl<'a> Feature<'a> {
         let n = w * h;
         let s = img.as_slice();
         let norm = (0..n)
+            .into_par_iter()
             .map(|i| {
                 let (x, y) = (i % w, i / w);
                 let mut g2 = 0.0;
@@ -588,6 +589,7 @@ fn rdfc_with(
         .map(|(f, ratio)| {
             let fs = f.as_slice();
             let raw: Vec<f32> = (0..n)
+                .into_par_iter()
                 .map(|i| {
                     (0..3)
                         .map(|ch| {
@@ -603,7 +605,7 @@ fn rdfc_with(
         })
         .collect();
     let m = filtered.len();
-    let onehot = Image::from_fn(m, h, w, |(k, y, x)| {
+    let onehot = Image::par_from_fn(m, h, w, |(k, y, x)| {
         let i = y * w + x;
         let best = (0..m)
             .min_by(|&a, &b| sure[a][i].total_cmp(&sure[b][i]))
@@ -624,7 +626,7 @@ fn rdfc_with(
     .remove(0)
     .0;
     let s = sel.as_slice();
-    Image::from_fn(3, h, w, |(ch, y, x)| {
+    Image::par_from_fn(3, h, w, |(ch, y, x)| {
         let i = y * w + x;
         let (mut acc, mut tot) = (0.0, 0.0);
         for (k, (f, _)) in filtered.iter().enumerate() {
