@@ -19,20 +19,20 @@
 //!
 //! Cost: per window offset and pixel, three weights (one `exp` each) and their accumulation
 //! into the three candidates' sums, plus the colour and feature distances and the patch sums,
-//! all vectorised. The image is cut into 128 x 32 tiles, filtered in parallel; each tile loops
+//! all vectorised. The image is cut into 256 x 16 tiles, filtered in parallel; each tile loops
 //! over the offsets and, per offset, over its rows, so that its inputs (with the window's
 //! margin) and accumulators stay in the core's cache instead of one full-image pass per step
 //! and offset. Inputs are padded by the window radius (reflect-101) so that a neighbour row is
 //! a slice; the colour distance is computed once per offset for the tile and a `patch` margin,
 //! then patch-summed by direct shifted-slice sums (`reflect` only in the image's border
-//! columns), so a candidate costs about the same for any patch size; the exponential is a
-//! branch-free polynomial (`fastmath`), which vectorises where libm's `expf` does not. At
-//! 1280 x 720 on two cores the pre-denoiser takes about 1.5 s instead of about 16 s; about
-//! half of it is the 3 x 440 weights per pixel (exp and accumulation). The three row kernels
-//! are also compiled for AVX-512 and for AVX2 + FMA, picked at run time (`multiversion`; the
-//! same bits, as Rust never fuses a multiply-add): 1.78 s -> 1.51 s (AVX2) -> 1.35 s (AVX-512)
-//! at 720p. The previous implementation is
-//! kept in the tests as the reference.
+//! columns; up to 8 rows per pass), so a candidate costs about the same for any patch size;
+//! offsets are weighed in pairs (one pass over the accumulators for two offsets, the same sums
+//! in the same order); the exponential is a branch-free polynomial (`fastmath`), which
+//! vectorises where libm's `expf` does not. The row kernels are also compiled for AVX-512 and
+//! for AVX2 + FMA, picked at run time (`multiversion`; the same bits, as Rust never fuses a
+//! multiply-add). At 1280 x 720 on two cores the pre-denoiser takes about 1.1 s (16 s before
+//! the tiling, 1.5 s before the AVX-512 kernels, pairs, row batches and wider tiles). The
+//! previous implementation is kept in the tests as the reference.
 
 use rayon::prelude::*;
 
@@ -135,7 +135,13 @@ fn box_mean(src: &[f32], w: usize, h: usize, r: usize, tmp: &mut Vec<f32>, dst: 
 
 /// Side lengths (columns, rows) of the tiles [`nlm_candidates`] works on: a tile's inputs
 /// (with the window's margin) and accumulators stay in a core's L2 cache for all offsets.
-const TILE: (usize, usize) = (128, 32);
+/// Measured at 720p (RDFC, s): 128 x 32 1.31, 128 x 16 1.34, 64 x 16 1.48, 256 x 16 1.17,
+/// 256 x 32 1.21, 512 x 16 1.22, 1280 x 8 1.48: longer rows amortise the per-row calls.
+const TILE: (usize, usize) = (256, 16);
+
+/// Window offsets weighed together (see [`weigh_rows`]): pairs (720p: RDFC 1.17 s -> 1.09 s;
+/// groups of 4 were no faster).
+const GROUP: usize = 2;
 
 /// An image whose rows are padded left and right by `pad` columns (reflect-101), so that the
 /// column `reflect(x + dx)` of a window offset `dx` is `x + dx` of a padded row: a slice.
@@ -250,33 +256,45 @@ struct WeighInputs<'a> {
     data: [&'a [f32]; 3],
 }
 
-/// Weights of one candidate over a row, `w = exp(-max(scale * patch, fd))`, accumulated:
-/// `den += w`, `maxw = max(maxw, w)`, `num_c += w * data_c`. (Each output is its own `&mut`
-/// argument: the compiler then knows they do not overlap, and vectorises.)
+/// Weights of one candidate over a row for `P` window offsets, `w = exp(-max(scale * patch,
+/// fd))`, accumulated offset after offset: `den += w`, `maxw = max(maxw, w)`, `num_c += w *
+/// data_c` (the same sums in the same order as one offset at a time, with one read and write
+/// of the accumulators instead of `P`). Each output is its own `&mut` argument: the compiler
+/// then knows they do not overlap, and vectorises.
 #[multiversion::multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
     "x86_64+avx2+fma"
 ))]
-fn weigh_row(
-    inp: &WeighInputs,
+fn weigh_rows<const P: usize>(
+    inp: [&WeighInputs; P],
     den: &mut [f32],
     maxw: &mut [f32],
     n0: &mut [f32],
     n1: &mut [f32],
     n2: &mut [f32],
 ) {
-    let n = inp.fd.len();
-    let (patch, fd, [d0, d1, d2]) = (&inp.patch[..n], inp.fd, inp.data);
-    let (d0, d1, d2) = (&d0[..n], &d1[..n], &d2[..n]);
-    let (den, maxw) = (&mut den[..n], &mut maxw[..n]);
+    let n = den.len();
+    let patch = inp.map(|o| &o.patch[..n]);
+    let fd = inp.map(|o| &o.fd[..n]);
+    let scale = inp.map(|o| o.scale);
+    let d0 = inp.map(|o| &o.data[0][..n]);
+    let d1 = inp.map(|o| &o.data[1][..n]);
+    let d2 = inp.map(|o| &o.data[2][..n]);
+    let maxw = &mut maxw[..n];
     let (n0, n1, n2) = (&mut n0[..n], &mut n1[..n], &mut n2[..n]);
     for i in 0..n {
-        let wgt = exp_nonpositive(-max(patch[i] * inp.scale, fd[i]));
-        den[i] += wgt;
-        maxw[i] = max(maxw[i], wgt);
-        n0[i] += wgt * d0[i];
-        n1[i] += wgt * d1[i];
-        n2[i] += wgt * d2[i];
+        let (mut s, mut m) = (den[i], maxw[i]);
+        let (mut a0, mut a1, mut a2) = (n0[i], n1[i], n2[i]);
+        for o in 0..P {
+            let wgt = exp_nonpositive(-max(patch[o][i] * scale[o], fd[o][i]));
+            s += wgt;
+            m = max(m, wgt);
+            a0 += wgt * d0[o][i];
+            a1 += wgt * d1[o][i];
+            a2 += wgt * d2[o][i];
+        }
+        (den[i], maxw[i]) = (s, m);
+        (n0[i], n1[i], n2[i]) = (a0, a1, a2);
     }
 }
 
@@ -303,20 +321,67 @@ fn box_row(d: &[f32], xs: usize, x0: usize, w: usize, r: usize, out: &mut [f32])
     }
 }
 
-/// `out = sum of the rows` (at least one, each at least `out.len()` long), added in order.
-fn add_rows<'a>(out: &mut [f32], mut rows: impl Iterator<Item = &'a [f32]>) {
-    let a = rows.next().expect("a row");
-    match rows.next() {
-        Some(b) => {
-            for ((o, &u), &v) in out.iter_mut().zip(a).zip(b) {
-                *o = u + v;
-            }
-        }
-        None => out.copy_from_slice(&a[..out.len()]),
-    }
+/// `out = sum of the rows` (at least one, each at least `out.len()` long), added in order:
+/// up to [`ROW_BATCH`] rows per pass over `out` (a 7 x 7 patch sum is one pass, not six).
+fn add_rows<'a>(out: &mut [f32], rows: impl Iterator<Item = &'a [f32]>) {
+    let mut batch: [&[f32]; ROW_BATCH] = [&[]; ROW_BATCH];
+    let (mut len, mut first) = (0, true);
     for row in rows {
-        for (o, &v) in out.iter_mut().zip(row) {
-            *o += v;
+        batch[len] = row;
+        len += 1;
+        if len == ROW_BATCH {
+            add_row_batch(out, &batch, first);
+            (len, first) = (0, false);
+        }
+    }
+    assert!(len > 0 || !first, "a row");
+    if len > 0 {
+        add_row_batch(out, &batch[..len], first);
+    }
+}
+
+/// Rows summed per pass by [`add_rows`].
+const ROW_BATCH: usize = 8;
+
+/// `out = rows[0] + rows[1] + ...` (`init`) or `out += rows[0] + ...`, left to right, for 1 to
+/// [`ROW_BATCH`] rows.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma"
+))]
+fn add_row_batch(out: &mut [f32], rows: &[&[f32]], init: bool) {
+    match rows.len() {
+        1 => sum_into::<1>(out, rows, init),
+        2 => sum_into::<2>(out, rows, init),
+        3 => sum_into::<3>(out, rows, init),
+        4 => sum_into::<4>(out, rows, init),
+        5 => sum_into::<5>(out, rows, init),
+        6 => sum_into::<6>(out, rows, init),
+        7 => sum_into::<7>(out, rows, init),
+        _ => sum_into::<8>(out, rows, init),
+    }
+}
+
+/// [`add_row_batch`] for exactly `K` rows (unrolled, so the loop over `out` vectorises).
+#[inline(always)]
+fn sum_into<const K: usize>(out: &mut [f32], rows: &[&[f32]], init: bool) {
+    let n = out.len();
+    let rows: [&[f32]; K] = std::array::from_fn(|k| &rows[k][..n]);
+    if init {
+        for (i, o) in out.iter_mut().enumerate() {
+            let mut acc = rows[0][i];
+            for r in &rows[1..] {
+                acc += r[i];
+            }
+            *o = acc;
+        }
+    } else {
+        for (i, o) in out.iter_mut().enumerate() {
+            let mut acc = *o;
+            for r in &rows {
+                acc += r[i];
+            }
+            *o = acc;
         }
     }
 }
@@ -336,6 +401,41 @@ struct Nlm<'a> {
 }
 
 impl Nlm<'_> {
+    /// `fd` = the largest feature distance over the features, for the `len` pixels of row `y`
+    /// from column `x0` against their neighbours at `(ox, qy)`; 0 without features. `acc` is
+    /// scratch of the same length (features with other than 3 channels).
+    fn feature_distance(
+        &self,
+        fd: &mut [f32],
+        acc: &mut [f32],
+        (x0, len): (usize, usize),
+        (y, qy): (usize, usize),
+        ox: isize,
+    ) {
+        let w = self.colour.w;
+        fd.fill(0.0);
+        for (f, inv) in &self.features {
+            let inv = &inv[y * w + x0..y * w + x0 + len];
+            if f.channels == 3 {
+                let (fp, fq) = (f.rows3(y, x0, 0, len), f.rows3(qy, x0, ox, len));
+                feature_distance_row3(fd, fp, fq, inv);
+                continue;
+            }
+            acc.fill(0.0);
+            for k in 0..f.channels {
+                let fp = f.row(k, y, x0, 0, len);
+                let fq = f.row(k, qy, x0, ox, len);
+                for ((a, &u), &v) in acc.iter_mut().zip(fp).zip(fq) {
+                    let diff = u - v;
+                    *a += diff * diff;
+                }
+            }
+            for ((d, &a), &iv) in fd.iter_mut().zip(&*acc).zip(inv) {
+                *d = max(a * iv, *d);
+            }
+        }
+    }
+
     /// Filters the tile of columns `x0..x1`, rows `y0..y1`: per candidate `k` and data channel
     /// `c`, plane `k * channels + c` of the first result (tile-sized planes); per candidate,
     /// the centre weight ratio plane.
@@ -355,20 +455,26 @@ impl Nlm<'_> {
         );
         let dw = xe - xs;
         let mut delta = vec![0.0f32; dw * (ye - ys)];
-        let mut hsum = vec![vec![0.0f32; tw * (ye - ys)]; self.radii.len()];
-        let mut patched = vec![vec![0.0f32; tw]; self.radii.len()];
+        // Per slot (the offsets of a group): horizontal patch sums per radius, the rows'
+        // vertical patch sums and feature distances.
+        let mut hsum = [0; GROUP].map(|_| vec![vec![0.0f32; tw * (ye - ys)]; self.radii.len()]);
+        let mut patched = [0; GROUP].map(|_| vec![vec![0.0f32; tw]; self.radii.len()]);
+        let mut fd = [0; GROUP].map(|_| vec![0.0f32; tw]);
         let zeros = vec![0.0f32; tw];
-        let (mut fd, mut acc) = (vec![0.0f32; tw], vec![0.0f32; tw]);
+        let mut acc = vec![0.0f32; tw];
         let mut num = vec![0.0f32; m * dch * tn];
         let mut den = vec![0.0f32; m * tn];
         let mut maxw = vec![0.0f32; m * tn];
         let r = self.radius as isize;
-        for oy in -r..=r {
-            for ox in -r..=r {
-                if ox == 0 && oy == 0 {
-                    continue;
-                }
-                if !self.radii.is_empty() {
+        let offsets: Vec<(isize, isize)> = (-r..=r)
+            .flat_map(|oy| (-r..=r).map(move |ox| (ox, oy)))
+            .filter(|&o| o != (0, 0))
+            .collect();
+        // Offsets go in groups of GROUP, in order (every sum adds them as one at a time
+        // would): a group reads and writes the accumulators once.
+        for group in offsets.chunks(GROUP) {
+            if !self.radii.is_empty() {
+                for (hsum, &(ox, oy)) in hsum.iter_mut().zip(group) {
                     // Colour distance rows (the mean over channels' 1/3 is applied later).
                     for (row, py) in delta.chunks_exact_mut(dw).zip(ys..ye) {
                         let qy = reflect(py as isize + oy, h);
@@ -386,32 +492,15 @@ impl Nlm<'_> {
                         }
                     }
                 }
-                for (t, y) in (y0..y1).enumerate() {
+            }
+            for (t, y) in (y0..y1).enumerate() {
+                for (slot, &(ox, oy)) in group.iter().enumerate() {
                     let qy = reflect(y as isize + oy, h);
-                    // Feature distance: the largest over the features.
-                    fd.fill(0.0);
-                    for (f, inv) in &self.features {
-                        let inv = &inv[y * w + x0..y * w + x1];
-                        if f.channels == 3 {
-                            let (fp, fq) = (f.rows3(y, x0, 0, tw), f.rows3(qy, x0, ox, tw));
-                            feature_distance_row3(&mut fd, fp, fq, inv);
-                            continue;
-                        }
-                        acc.fill(0.0);
-                        for k in 0..f.channels {
-                            let fp = f.row(k, y, x0, 0, tw);
-                            let fq = f.row(k, qy, x0, ox, tw);
-                            for ((a, &u), &v) in acc.iter_mut().zip(fp).zip(fq) {
-                                let diff = u - v;
-                                *a += diff * diff;
-                            }
-                        }
-                        for ((d, &a), &iv) in fd.iter_mut().zip(&acc).zip(inv) {
-                            *d = max(a * iv, *d);
-                        }
-                    }
+                    self.feature_distance(&mut fd[slot], &mut acc, (x0, tw), (y, qy), ox);
                     // Vertical patch sums of this row.
-                    for ((pa, hs), &pr) in patched.iter_mut().zip(&hsum).zip(&self.radii) {
+                    for ((pa, hs), &pr) in
+                        patched[slot].iter_mut().zip(&hsum[slot]).zip(&self.radii)
+                    {
                         let r = pr as isize;
                         add_rows(
                             pa,
@@ -421,36 +510,37 @@ impl Nlm<'_> {
                             }),
                         );
                     }
-                    for (k, cand) in self.candidates.iter().enumerate() {
-                        // dist = max(patch mean / k_c^2, d_f, 0), or max(d_f, 0) without colour
-                        // term; d_f >= 0 (not NaN) already.
-                        let (pa, scale) = match cand.kc {
+                }
+                for (k, cand) in self.candidates.iter().enumerate() {
+                    // dist = max(patch mean / k_c^2, d_f, 0), or max(d_f, 0) without colour
+                    // term; d_f >= 0 (not NaN) already.
+                    let inputs = |slot: usize| {
+                        let (ox, oy) = group[slot];
+                        let qy = reflect(y as isize + oy, h);
+                        let (patch, scale) = match cand.kc {
                             Some(kc) => {
                                 let j = self.radii.iter().position(|&q| q == cand.patch);
                                 let j = j.expect("radius listed");
                                 let area = ((2 * cand.patch + 1) * (2 * cand.patch + 1)) as f32;
-                                (&patched[j], 1.0 / (3.0 * area * kc * kc))
+                                (&patched[slot][j][..], 1.0 / (3.0 * area * kc * kc))
                             }
-                            None => (&zeros, 0.0),
+                            None => (&zeros[..], 0.0),
                         };
-                        let at = k * tn + t * tw;
-                        let mut planes = num[k * 3 * tn..(k + 1) * 3 * tn].chunks_exact_mut(tn);
-                        let mut next = || &mut planes.next().expect("3 planes")[t * tw..][..tw];
-                        let inp = WeighInputs {
-                            patch: pa,
+                        WeighInputs {
+                            patch,
                             scale,
-                            fd: &fd,
+                            fd: &fd[slot],
                             data: self.data.rows3(qy, x0, ox, tw),
-                        };
-                        let (n0, n1, n2) = (next(), next(), next());
-                        weigh_row(
-                            &inp,
-                            &mut den[at..at + tw],
-                            &mut maxw[at..at + tw],
-                            n0,
-                            n1,
-                            n2,
-                        );
+                        }
+                    };
+                    let at = k * tn + t * tw;
+                    let mut planes = num[k * 3 * tn..(k + 1) * 3 * tn].chunks_exact_mut(tn);
+                    let mut next = || &mut planes.next().expect("3 planes")[t * tw..][..tw];
+                    let (n0, n1, n2) = (next(), next(), next());
+                    let (den, maxw) = (&mut den[at..at + tw], &mut maxw[at..at + tw]);
+                    match group.len() {
+                        1 => weigh_rows([&inputs(0)], den, maxw, n0, n1, n2),
+                        _ => weigh_rows([&inputs(0), &inputs(1)], den, maxw, n0, n1, n2),
                     }
                 }
             }
