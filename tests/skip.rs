@@ -90,6 +90,42 @@ fn filter_skips_empty_windows_in_the_qp() {
     );
 }
 
+/// The sample with its samples per pixel set to `spp` (the layers are unchanged).
+fn sample_at(spp: f32) -> Frame {
+    let sample = sample();
+    let mut b = FrameBuilder::new().spp(Some(spp));
+    for layer in [
+        Layer::Color,
+        Layer::Dx,
+        Layer::Dy,
+        Layer::Variance,
+        Layer::Albedo,
+        Layer::Normal,
+    ] {
+        b = b.image(layer, sample.layer(layer).unwrap().clone());
+    }
+    b.build(Policy::Replace).unwrap()
+}
+
+#[test]
+fn filter_drops_qp_terms_whose_weight_vanishes_at_very_high_spp() {
+    let config = MethodConfig::Filter(FilterConfig::default());
+    let (_, report) = run(&sample_at(16.0), config.clone());
+    assert!(
+        !report.skipped.iter().any(|s| s.contains("vanishes")),
+        "{:?}",
+        report.skipped
+    );
+    // At 1e12 spp the albedo, normal and coarser-level terms weigh under 1e-4 of the
+    // objective (measured on this frame: they start to from about 1e10 spp, the normal term
+    // first).
+    let (out, report) = run(&sample_at(1e12), config);
+    let note = skipped(&report, "vanishes");
+    assert!(note.contains("normal"), "{note}");
+    assert!(out.as_slice().iter().all(|v| v.is_finite()));
+    println!("{note}; qp {:.3} s", stage(&report, "qp"));
+}
+
 #[cfg(all(feature = "gradnet", feature = "embed-model"))]
 #[test]
 fn gradnet_skips_empty_tiles() {

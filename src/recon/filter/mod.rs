@@ -245,7 +245,7 @@ impl Filter {
             ));
             enhanced
         };
-        let level = qp::QpLevel {
+        let mut level = qp::QpLevel {
             img: &inp.colour,
             var: &inp.var,
             enhanced: &enhanced,
@@ -256,7 +256,21 @@ impl Filter {
             spp,
             radius: self.cfg.radius,
             converged: inp.converged.as_deref(),
+            dropped: [false; 5],
         };
+        level.dropped = qp::vanishing_terms(&level);
+        let dropped: Vec<&str> = (0..5)
+            .filter(|&a| level.dropped[a])
+            .map(|a| qp::TERM_NAMES[a])
+            .collect();
+        if !dropped.is_empty() {
+            report.skip(format!(
+                "QP terms of level {depth} whose weight vanishes at {spp} spp (below {:e} of the \
+                 objective): {}",
+                qp::VANISHING,
+                dropped.join(", ")
+            ));
+        }
         let (out, var, skipped) = report.time(&format!("qp filter (level {depth})"), || {
             qp::gradient_guided_filter(&level)
         });

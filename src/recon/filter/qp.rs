@@ -19,7 +19,8 @@
 //! `3n + 1` iterations. We exploit the low rank of `Q`: the projections `s = B w` (at most 15
 //! values), `sum v w^2` and a global scale of `w` are updated in O(15) per iteration instead
 //! of the O(15 n) of a direct evaluation. Terms whose weight is zero (no features, coarsest
-//! level) are not built at all.
+//! level) are not built at all; terms whose weight vanishes at very high spp have no rows
+//! ([`vanishing_terms`]) but still count in the start.
 //!
 //! Why it is fast (about 5x the one-pixel-at-a-time version at 1280 x 720): the arithmetic
 //! per pixel is the release's, operation for operation and sum for sum, so the output is
@@ -68,6 +69,100 @@ pub(crate) struct QpLevel<'a> {
     pub radius: usize,
     /// Converged pixels, whose output is their own colour and variance (finest level).
     pub converged: Option<&'a [bool]>,
+    /// Bias terms left out of the objective although their input is present (see
+    /// [`vanishing_terms`]); their costs still shape the initial weights.
+    pub dropped: [bool; 5],
+}
+
+impl QpLevel<'_> {
+    /// The weights of the terms whose input is present ([`alphas`]), dropped ones included.
+    pub(crate) fn present_alphas(&self) -> [f32; 5] {
+        alphas(
+            self.spp,
+            self.albedo.is_some(),
+            self.normal.is_some(),
+            self.up.is_some(),
+        )
+    }
+
+    /// The weights of the terms in the objective: [`QpLevel::present_alphas`] with the dropped
+    /// ones at 0.
+    pub(crate) fn alphas(&self) -> [f32; 5] {
+        let mut al = self.present_alphas();
+        for (a, &off) in al.iter_mut().zip(&self.dropped) {
+            if off {
+                *a = 0.0;
+            }
+        }
+        al
+    }
+}
+
+/// Share of the QP objective below which an optional bias term is dropped.
+pub(crate) const VANISHING: f64 = 1e-4;
+
+/// Names of the bias terms `b0..b4`, for reports.
+pub(crate) const TERM_NAMES: [&str; 5] = ["enhanced", "albedo", "normal", "guide", "coarser level"];
+
+/// The optional terms (albedo, normal, coarser level: `b1`, `b2`, `b4`) whose weights vanish.
+/// Their `alpha` scales with `1 / sqrt(spp)`; a term is dropped when `alpha_a S_a < VANISHING
+/// (S_0 + V)`, with `S_a` the mean squared (unweighted) bias of term `a` between horizontal
+/// neighbours, `S_0` that of the enhanced-image term (weight 1) and `V` the mean summed
+/// variance (the objective's diagonal): its share of the objective is then below 1e-4, while
+/// it costs 3 of the QP's 6 to 15 rows. The guide term `b3` is always kept. A dropped term's
+/// cost still counts in the initial weights (the release's start uses every term's unweighted
+/// cost), so the truncated solve starts where it would have.
+pub(crate) fn vanishing_terms(level: &QpLevel) -> [bool; 5] {
+    let al = level.present_alphas();
+    let (w, h) = level.img.size();
+    let n = w * h;
+    if w < 2 || [1, 2, 4].iter().all(|&a| al[a] == 0.0) {
+        return [false; 5];
+    }
+    let (img, var, enh) = (
+        level.img.as_slice(),
+        level.var.as_slice(),
+        level.enhanced.as_slice(),
+    );
+    let up = level.up.map(|(u, _)| u.as_slice());
+    let up_var = level.up.map(|(_, v)| v.as_slice());
+    let (alb, nrm) = (
+        level.albedo.map(Image::as_slice),
+        level.normal.map(Image::as_slice),
+    );
+    // Per row: the sums of S_0, S_1, S_2, S_4 and V.
+    let sums = (0..h)
+        .into_par_iter()
+        .map(|y| {
+            let sq = |d: f32| f64::from(d) * f64::from(d);
+            let mut acc = [0.0f64; 5];
+            for c in 0..3 {
+                for x in 0..w - 1 {
+                    let (p, q) = (c * n + y * w + x, c * n + y * w + x + 1);
+                    let residual = up.map_or(0.0, |u| img[q] - u[q]);
+                    acc[0] += sq(enh[q] - enh[p]);
+                    if let Some(f) = alb {
+                        acc[1] += sq(f[q] - f[p] + residual);
+                    }
+                    if let Some(f) = nrm {
+                        acc[2] += sq(f[q] - f[p] + residual);
+                    }
+                    if let Some(u) = up {
+                        acc[3] += sq(u[q] - u[p]);
+                    }
+                    acc[4] += f64::from(var[p].max(0.0))
+                        + up_var.map_or(0.0, |v| f64::from(v[p].max(0.0)));
+                }
+            }
+            acc
+        })
+        .reduce(|| [0.0; 5], |a, b| std::array::from_fn(|i| a[i] + b[i]));
+    let rest = sums[0] + sums[4];
+    let mut dropped = [false; 5];
+    for (a, s) in [(1, sums[1]), (2, sums[2]), (4, sums[3])] {
+        dropped[a] = al[a] > 0.0 && f64::from(al[a]) * s < VANISHING * rest;
+    }
+    dropped
 }
 
 /// Pixels the QP did not solve.
@@ -388,17 +483,20 @@ impl Planes {
         }
     }
 
-    /// The active bias terms, in the release's order, padded to `k / 3` with zero-weight ones
-    /// (never needed: `k` is 3 x the active terms).
+    /// The bias terms whose input is present, in the release's order: those in the objective
+    /// (`al`, `k / 3` of them, padded with zero-weight ones if fewer: never needed) have rows;
+    /// dropped ones (`level.dropped`) only count in the initial weights.
     fn terms<'a>(&'a self, level: &'a QpLevel, al: &[f32; 5], k: usize) -> Vec<Term<'a>> {
+        let present = level.present_alphas();
         let term = |src, centre: &'a Image, residual, a: usize| {
-            let sq = al[a].sqrt();
+            let sq = present[a].sqrt();
             Term {
                 src,
                 centre: centre.as_slice(),
                 residual,
                 sq: F32x::splat(sq),
                 unscale: Unscale::new(sq),
+                row: al[a] != 0.0,
             }
         };
         let feature_residual = match self.up {
@@ -410,15 +508,15 @@ impl Planes {
             (1, &self.albedo, level.albedo),
             (2, &self.normal, level.normal),
         ] {
-            if let (Some(p), Some(f), true) = (p, f, al[a] != 0.0) {
+            if let (Some(p), Some(f), true) = (p, f, present[a] != 0.0) {
                 terms.push(term(p, f, feature_residual, a));
             }
         }
         terms.push(term(&self.img, level.guide, Residual::None, 3));
-        if let (Some(p), Some((u, _)), true) = (&self.up, level.up, al[4] != 0.0) {
+        if let (Some(p), Some((u, _)), true) = (&self.up, level.up, present[4] != 0.0) {
             terms.push(term(p, u, Residual::None, 4));
         }
-        while 3 * terms.len() < k {
+        while 3 * terms.iter().filter(|t| t.row).count() < k {
             terms.push(Term {
                 sq: F32x::splat(0.0),
                 unscale: Unscale::Zero,
@@ -460,6 +558,8 @@ struct Term<'a> {
     /// `sqrt(alpha)`.
     sq: F32x,
     unscale: Unscale,
+    /// Whether the term has rows in the objective (false: dropped, see [`vanishing_terms`]).
+    row: bool,
 }
 
 /// How the initial weights undo a row's `sqrt(alpha)` (the release divides).
@@ -499,12 +599,7 @@ struct Scratch<const K: usize> {
 /// is not solved (black backgrounds, letterboxing, masked-out regions). A converged pixel
 /// (`level.converged`) keeps its colour and variance.
 pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, Skipped) {
-    let al = alphas(
-        level.spp,
-        level.albedo.is_some(),
-        level.normal.is_some(),
-        level.up.is_some(),
-    );
+    let al = level.alphas();
     // `b0` and `b3` are always on, so 6, 9, 12 or 15 rows.
     match 3 * al.iter().filter(|&&a| a != 0.0).count() {
         6 => filter_rows::<6>(level, &al),
@@ -659,20 +754,25 @@ impl<const K: usize> Ctx<'_, K> {
         // Window entry q = dy * side + dx of lane l is padded (x0 + l + dx, y - y0 + dy). Neighbour
         // by neighbour: the bias entries, the initial weights' costs (inverse root of the total
         // unweighted cost) and the column norms, every sum in the release's order of rows.
-        let terms = &self.terms[..K / 3];
-        let centres: [F32x; K] = std::array::from_fn(|r| {
+        // Every present term, in order; dropped ones (no row) only add to the start's costs.
+        let terms = self.terms;
+        let nt = terms.len();
+        let centres: [F32x; MAX_K] = std::array::from_fn(|r| {
             let at = (r % 3) * self.n_px + y * w;
-            F32x(std::array::from_fn(|l| {
-                terms[r / 3].centre[at + (x0 + l).min(w - 1)]
-            }))
+            match terms.get(r / 3) {
+                Some(t) => F32x(std::array::from_fn(|l| t.centre[at + (x0 + l).min(w - 1)])),
+                None => F32x::default(),
+            }
         });
         let mut st = Start::<K>::new();
         let mut total = F32x::splat(0.0);
         let width = side + LANES - 1;
         for dy in 0..side {
             let py = y - self.y0 + dy;
-            let srcs: [&[f32]; K] =
-                std::array::from_fn(|r| &terms[r / 3].src.row(r % 3, py, x0)[..width]);
+            let srcs: [&[f32]; MAX_K] = std::array::from_fn(|r| match terms.get(r / 3) {
+                Some(t) => &t.src.row(r % 3, py, x0)[..width],
+                None => &[][..],
+            });
             let residual: [(&[f32], &[f32]); 3] = std::array::from_fn(|c| match self.up {
                 Some(up) => (
                     &self.img.row(c, py, x0)[..width],
@@ -701,19 +801,23 @@ impl<const K: usize> Ctx<'_, K> {
                 let mut e = vq + F32x::splat(0.1);
                 let mut col2 = F32x::splat(0.0);
                 let bq = &mut sc.b[q];
-                for (ti, term) in terms.iter().enumerate() {
+                let mut row = 0;
+                for (ti, term) in terms[..nt].iter().enumerate() {
                     for c in 0..3 {
                         let r = 3 * ti + c;
                         let d = F32x::load(&srcs[r][dx..dx + LANES]) - centres[r];
                         let br = term.sq * (d + addends[term.residual.addend(c)]);
-                        bq[r] = br;
                         let raw = match term.unscale {
                             Unscale::Mul(m) => br * m,
                             Unscale::Div(s) => br / s,
                             Unscale::Zero => F32x::splat(0.0),
                         };
                         e = e + raw * raw;
-                        col2 = col2 + br * br;
+                        if term.row {
+                            bq[row] = br;
+                            col2 = col2 + br * br;
+                            row += 1;
+                        }
                     }
                 }
                 st.col2[q] = col2;

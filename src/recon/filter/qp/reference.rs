@@ -5,7 +5,7 @@
 
 use rayon::prelude::*;
 
-use super::{alphas, QpLevel, Skipped, MAX_K, MAX_N};
+use super::{QpLevel, Skipped, MAX_K, MAX_N};
 use crate::image::Image;
 use crate::recon::filter::util::reflect;
 
@@ -170,12 +170,9 @@ pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, Skipped,
     let r = level.radius as isize;
     let side = 2 * level.radius + 1;
     let n = side * side;
-    let al = alphas(
-        level.spp,
-        level.albedo.is_some(),
-        level.normal.is_some(),
-        level.up.is_some(),
-    );
+    // Rows for every present term: the start counts them all; the dropped ones are removed
+    // before the solve.
+    let al = level.present_alphas();
     let sq: [f32; 5] = al.map(f32::sqrt);
     let img = level.img.as_slice();
     let var = level.var.as_slice();
@@ -282,8 +279,15 @@ pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, Skipped,
                 for x in &mut wts[..n] {
                     *x /= total;
                 }
+                let mut kept = 0;
+                for row in 0..k {
+                    if !level.dropped[term_of(row, &al)] {
+                        b[kept] = b[row];
+                        kept += 1;
+                    }
+                }
                 iters[x] = Simplex {
-                    b: &b[..k],
+                    b: &b[..kept],
                     v: &v[..n],
                     n,
                 }
