@@ -90,19 +90,14 @@ fn filter_skips_empty_windows_in_the_qp() {
     );
 }
 
-/// The sample with its samples per pixel set to `spp` (the layers are unchanged).
+/// The sample with its samples per pixel set to `spp` (every layer unchanged).
 fn sample_at(spp: f32) -> Frame {
     let sample = sample();
     let mut b = FrameBuilder::new().spp(Some(spp));
-    for layer in [
-        Layer::Color,
-        Layer::Dx,
-        Layer::Dy,
-        Layer::Variance,
-        Layer::Albedo,
-        Layer::Normal,
-    ] {
-        b = b.image(layer, sample.layer(layer).unwrap().clone());
+    for layer in Layer::ALL {
+        if let Some(img) = sample.layer(layer) {
+            b = b.image(layer, img.clone());
+        }
     }
     b.build(Policy::Replace).unwrap()
 }
