@@ -16,6 +16,8 @@
 //!
 //! Sizes must be even: [`pad_even`] extends by reflect-101 and the caller crops afterwards.
 
+use std::borrow::Cow;
+
 use rayon::prelude::*;
 
 use super::util::reflect;
@@ -44,20 +46,23 @@ pub(crate) struct Glu {
     pub fit: Vec<(u32, u32, f32)>,
 }
 
-/// Pads to even width and height by reflect-101 (a no-op for even sizes).
-pub(crate) fn pad_even(img: &Image) -> Image {
+/// Pads to even width and height by reflect-101; even sizes are borrowed as they are (no copy).
+pub(crate) fn pad_even(img: &Image) -> Cow<'_, Image> {
     let (w, h) = img.size();
     let (pw, ph) = (w + w % 2, h + h % 2);
     if (pw, ph) == (w, h) {
-        return img.clone();
+        return Cow::Borrowed(img);
     }
-    Image::par_from_fn(img.channels(), ph, pw, |(c, y, x)| {
+    Cow::Owned(Image::par_from_fn(img.channels(), ph, pw, |(c, y, x)| {
         img.at(c, reflect(x as isize, w), reflect(y as isize, h))
-    })
+    }))
 }
 
-/// Crops to `w` x `h` (the top-left corner).
-pub(crate) fn crop(img: &Image, w: usize, h: usize) -> Image {
+/// Crops to `w` x `h` (the top-left corner); an image of that size is returned as it is.
+pub(crate) fn crop(img: Image, w: usize, h: usize) -> Image {
+    if img.size() == (w, h) {
+        return img;
+    }
     Image::par_from_fn(img.channels(), h, w, |(c, y, x)| img.at(c, x, y))
 }
 
@@ -391,7 +396,7 @@ mod tests {
         let img = Image::from_fn(3, 5, 7, |(c, y, x)| (x + 10 * y + c) as f32);
         let p = pad_even(&img);
         assert_eq!(p.size(), (8, 6));
-        assert_eq!(crop(&p, 7, 5), img);
         assert_eq!(p.at(0, 7, 0), img.at(0, 5, 0));
+        assert_eq!(crop(p.into_owned(), 7, 5), img);
     }
 }

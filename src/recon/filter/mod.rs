@@ -11,6 +11,8 @@ pub(crate) mod qp;
 pub(crate) mod rdfc;
 pub(crate) mod util;
 
+use std::borrow::Cow;
+
 use super::converged::converged_mask;
 use super::{Method, PoissonL1, PoissonL1Config, Reconstructor};
 use crate::error::{Error, Result};
@@ -143,10 +145,11 @@ const MIN_LEVEL_SIDE: usize = 16;
 /// Pads gradients to even sizes: reflect-101 like every other buffer, except that the
 /// difference across the new border is the negated mirrored one (a mirrored gradient changes
 /// sign) and the last column / row stays 0.
-fn pad_gradients(dx: &Image, dy: &Image) -> (Image, Image) {
+fn pad_gradients<'a>(dx: &'a Image, dy: &'a Image) -> (Cow<'a, Image>, Cow<'a, Image>) {
     let (w, h) = dx.size();
     let (mut px, mut py) = (glu::pad_even(dx), glu::pad_even(dy));
     if w % 2 == 1 {
+        let px = px.to_mut();
         for c in 0..3 {
             for y in 0..py.height() {
                 let mirrored = if w >= 2 { -px.at(c, w - 2, y) } else { 0.0 };
@@ -156,6 +159,7 @@ fn pad_gradients(dx: &Image, dy: &Image) -> (Image, Image) {
         }
     }
     if h % 2 == 1 {
+        let py = py.to_mut();
         for c in 0..3 {
             for x in 0..px.width() {
                 let mirrored = if h >= 2 { -py.at(c, x, h - 2) } else { 0.0 };
@@ -181,14 +185,19 @@ impl Filter {
         let (w, h) = inp.colour.size();
         let up = if levels > 1 && w.min(h) >= MIN_LEVEL_SIDE {
             let pad = glu::pad_even;
-            let mut guide_channels = vec![pad(&inp.guide)];
-            for f in [&inp.albedo, &inp.normal].into_iter().flatten() {
-                let mut scaled = pad(f);
-                scaled.as_mut_slice().iter_mut().for_each(|v| *v *= 0.1);
-                guide_channels.push(scaled);
-            }
+            let guide = pad(&inp.guide);
+            let features: Vec<Image> = [&inp.albedo, &inp.normal]
+                .into_iter()
+                .flatten()
+                .map(|f| {
+                    let mut scaled = pad(f).into_owned();
+                    scaled.as_mut_slice().iter_mut().for_each(|v| *v *= 0.1);
+                    scaled
+                })
+                .collect();
+            let guide_channels: Vec<&Image> = std::iter::once(&*guide).chain(&features).collect();
             let (pw, ph) = guide_channels[0].size();
-            let nc: usize = guide_channels.iter().map(Image::channels).sum();
+            let nc: usize = guide_channels.iter().map(|g| g.channels()).sum();
             let mut j = Image::zeros(nc, ph, pw);
             let mut o = 0;
             for g in &guide_channels {
@@ -206,13 +215,13 @@ impl Filter {
                 dy: cdy,
                 albedo: inp.albedo.as_ref().map(|a| fit.downsample(&pad(a), false)),
                 normal: inp.normal.as_ref().map(|f| fit.downsample(&pad(f), false)),
-                guide: fit.downsample(&pad(&inp.guide), false),
+                guide: fit.downsample(&guide, false),
                 converged: None,
             };
             let (r, v) = self.run_level(&coarse, levels - 1, spp, depth + 1, report);
             let (u, uv) = fit.upsample(&r, Some(&v));
             let uv = uv.expect("variance requested");
-            Some((glu::crop(&u, w, h), glu::crop(&uv, w, h)))
+            Some((glu::crop(u, w, h), glu::crop(uv, w, h)))
         } else {
             None
         };
@@ -220,7 +229,7 @@ impl Filter {
             if depth == 0 {
                 report.skip("gradient enhancement (0 iterations): the guide stands in");
             }
-            inp.guide.clone()
+            Cow::Borrowed(&inp.guide)
         } else {
             let lambda = 8.0 / spp.sqrt();
             let (enhanced, outcome) = report.time(&format!("enhance (level {depth})"), || {
@@ -243,7 +252,7 @@ impl Filter {
                 "level {depth} ({w} x {h}): enhancement {} iterations, {} reverts, energy {:.4e} -> {:.4e}",
                 self.cfg.enhance_iterations, outcome.reverts, outcome.loss_start, outcome.loss_end
             ));
-            enhanced
+            Cow::Owned(enhanced)
         };
         let mut level = qp::QpLevel {
             img: &inp.colour,
