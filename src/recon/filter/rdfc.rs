@@ -398,6 +398,9 @@ struct Nlm<'a> {
     /// The distinct patch radii of the candidates with a colour term, and the largest.
     radii: Vec<usize>,
     patch: usize,
+    /// Per candidate: the index in `radii` of its patch and the scale of its patch sum,
+    /// `1 / (3 area k_c^2)` (`None`: colour term off).
+    patch_scale: Vec<Option<(usize, f32)>>,
 }
 
 impl Nlm<'_> {
@@ -494,8 +497,14 @@ impl Nlm<'_> {
                 }
             }
             for (t, y) in (y0..y1).enumerate() {
-                for (slot, &(ox, oy)) in group.iter().enumerate() {
-                    let qy = reflect(y as isize + oy, h);
+                // The neighbour row of each offset of the group.
+                let qys: [usize; GROUP] = std::array::from_fn(|s| {
+                    group
+                        .get(s)
+                        .map_or(0, |&(_, oy)| reflect(y as isize + oy, h))
+                });
+                for (slot, &(ox, _)) in group.iter().enumerate() {
+                    let qy = qys[slot];
                     self.feature_distance(&mut fd[slot], &mut acc, (x0, tw), (y, qy), ox);
                     // Vertical patch sums of this row.
                     for ((pa, hs), &pr) in
@@ -511,26 +520,19 @@ impl Nlm<'_> {
                         );
                     }
                 }
-                for (k, cand) in self.candidates.iter().enumerate() {
+                for (k, &patch_scale) in self.patch_scale.iter().enumerate() {
                     // dist = max(patch mean / k_c^2, d_f, 0), or max(d_f, 0) without colour
                     // term; d_f >= 0 (not NaN) already.
                     let inputs = |slot: usize| {
-                        let (ox, oy) = group[slot];
-                        let qy = reflect(y as isize + oy, h);
-                        let (patch, scale) = match cand.kc {
-                            Some(kc) => {
-                                let j = self.radii.iter().position(|&q| q == cand.patch);
-                                let j = j.expect("radius listed");
-                                let area = ((2 * cand.patch + 1) * (2 * cand.patch + 1)) as f32;
-                                (&patched[slot][j][..], 1.0 / (3.0 * area * kc * kc))
-                            }
+                        let (patch, scale) = match patch_scale {
+                            Some((j, scale)) => (&patched[slot][j][..], scale),
                             None => (&zeros[..], 0.0),
                         };
                         WeighInputs {
                             patch,
                             scale,
                             fd: &fd[slot],
-                            data: self.data.rows3(qy, x0, ox, tw),
+                            data: self.data.rows3(qys[slot], x0, group[slot].0, tw),
                         }
                     };
                     let at = k * tn + t * tw;
@@ -614,6 +616,14 @@ pub(crate) fn nlm_candidates(
         radius,
         candidates,
         patch: radii.last().copied().unwrap_or(0),
+        patch_scale: candidates
+            .iter()
+            .map(|c| {
+                let j = radii.iter().position(|&q| q == c.patch);
+                let area = ((2 * c.patch + 1) * (2 * c.patch + 1)) as f32;
+                c.kc.map(|kc| (j.expect("radius listed"), 1.0 / (3.0 * area * kc * kc)))
+            })
+            .collect(),
         radii,
     };
     let tiles: Vec<((usize, usize), (usize, usize))> = (0..h)
