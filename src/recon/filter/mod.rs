@@ -109,7 +109,7 @@ impl Filter {
 /// neighbourhood's colour (an overestimate at edges, which makes the filter more cautious).
 fn estimate_variance(colour: &Image) -> Image {
     let (w, h) = colour.size();
-    Image::from_fn(3, h, w, |(c, y, x)| {
+    Image::par_from_fn(3, h, w, |(c, y, x)| {
         let (mut s, mut s2) = (0.0f32, 0.0f32);
         for dy in -1..=1 {
             for dx in -1..=1 {
