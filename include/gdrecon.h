@@ -240,10 +240,10 @@ gdr_error gdr_filter_release(gdr_filter **filter);
 // Set a float parameter: `"alpha"` (screened Poisson weight), `"spp"` (0 = unknown); l1 also `"cg_tolerance"`.
 gdr_error gdr_filter_set_float(gdr_filter *filter, const char *name, float value);
 
-// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step); gradnet `"tile_size"` (frames above tile_size² pixels run in tiles of that side; 0 = never); filter `"radius"` (3 or 4, default 4), `"levels"` (1 to 4, default 2), `"enhance_iterations"` (default 1000; 0 = no gradient enhancement), `"guide"` (a `GDR_FILTER_GUIDE_*` value, default RDFC).
+// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step); gradnet `"tile_size"` (frames above tile_size² pixels run in tiles of that side; 0 = never); filter `"radius"` (3 or 4, default 4), `"levels"` (1 to 4, default 2), `"enhance_iterations"` (default 250, the fast mode; 1000 = the release's reference mode; 0 = no gradient enhancement), `"guide"` (a `GDR_FILTER_GUIDE_*` value, default RDFC).
 gdr_error gdr_filter_set_int(gdr_filter *filter, const char *name, int32_t value);
 
-// Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`; gradnet `"bias_correction"`, `"use_features"` (both default true).
+// Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`; gradnet `"bias_correction"`, `"use_features"` (both default true); filter `"prefilter"` (the feature prefilter, default true).
 //
 // `"internal_test_panic"` = true is reserved for tests: it raises an internal error inside the
 // library, which must come back as `GDR_ERROR_UNKNOWN` (no panic crosses the ABI).

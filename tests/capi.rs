@@ -210,6 +210,7 @@ fn filter_parameters_reach_the_method() {
         levels: 1,
         enhance_iterations: 0,
         guide: gdrecon::recon::FilterGuide::Colour,
+        prefilter: true,
     };
     let expected = rust_output(&frame, &MethodConfig::Filter(config));
     let f = filter(ctx, "filter");

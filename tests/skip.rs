@@ -121,6 +121,24 @@ fn filter_drops_qp_terms_whose_weight_vanishes_at_very_high_spp() {
     println!("{note}; qp {:.3} s", stage(&report, "qp"));
 }
 
+#[test]
+fn filter_without_features_skips_their_terms_and_prefilter() {
+    let config = MethodConfig::Filter(FilterConfig::default());
+    let (_, with) = run(&sample(), config.clone());
+    assert!(stage(&with, "feature prefilter") > 0.0, "{:?}", with.stages);
+    assert!(!with.skipped.iter().any(|s| s.contains("prefilter")));
+    let sample = sample();
+    let mut b = FrameBuilder::new().spp(sample.spp());
+    for layer in [Layer::Color, Layer::Dx, Layer::Dy, Layer::Variance] {
+        b = b.image(layer, sample.layer(layer).unwrap().clone());
+    }
+    let (out, without) = run(&b.build(Policy::Replace).unwrap(), config);
+    let note = skipped(&without, "no albedo or normal");
+    assert!(note.contains("prefilter"), "{note}");
+    assert_eq!(stage(&without, "feature prefilter"), 0.0);
+    assert!(out.as_slice().iter().all(|v| v.is_finite()));
+}
+
 #[cfg(all(feature = "gradnet", feature = "embed-model"))]
 #[test]
 fn gradnet_skips_empty_tiles() {

@@ -110,6 +110,7 @@ fn params(method: Method) -> &'static [(&'static str, Kind)] {
             ("levels", Int),
             ("enhance_iterations", Int),
             ("guide", Int),
+            ("prefilter", Bool),
             ("spp", Float),
             ("strict", Bool),
         ],
@@ -186,6 +187,7 @@ impl State {
             ("enhance_iterations", M::Filter(c), V::Int(i)) => {
                 c.enhance_iterations = to_u32(name, i)?
             }
+            ("prefilter", M::Filter(c), V::Bool(b)) => c.prefilter = b,
             ("guide", M::Filter(c), V::Int(i)) => {
                 c.guide = match i {
                     GDR_FILTER_GUIDE_RDFC => FilterGuide::Rdfc,
@@ -240,6 +242,7 @@ impl State {
             ("enhance_iterations", M::Filter(c)) => {
                 Value::Int(i32::try_from(c.enhance_iterations).unwrap_or(i32::MAX))
             }
+            ("prefilter", M::Filter(c)) => Value::Bool(c.prefilter),
             ("guide", M::Filter(c)) => Value::Int(match c.guide {
                 FilterGuide::Rdfc => GDR_FILTER_GUIDE_RDFC,
                 FilterGuide::PoissonL1 => GDR_FILTER_GUIDE_L1,
@@ -443,7 +446,7 @@ pub unsafe extern "C" fn gdr_filter_set_float(
     })
 }
 
-/// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step); gradnet `"tile_size"` (frames above tile_size² pixels run in tiles of that side; 0 = never); filter `"radius"` (3 or 4, default 4), `"levels"` (1 to 4, default 2), `"enhance_iterations"` (default 1000; 0 = no gradient enhancement), `"guide"` (a `GDR_FILTER_GUIDE_*` value, default RDFC).
+/// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step); gradnet `"tile_size"` (frames above tile_size² pixels run in tiles of that side; 0 = never); filter `"radius"` (3 or 4, default 4), `"levels"` (1 to 4, default 2), `"enhance_iterations"` (default 250, the fast mode; 1000 = the release's reference mode; 0 = no gradient enhancement), `"guide"` (a `GDR_FILTER_GUIDE_*` value, default RDFC).
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_set_int(
     filter: *mut gdr_filter,
@@ -455,7 +458,7 @@ pub unsafe extern "C" fn gdr_filter_set_int(
     })
 }
 
-/// Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`; gradnet `"bias_correction"`, `"use_features"` (both default true).
+/// Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`; gradnet `"bias_correction"`, `"use_features"` (both default true); filter `"prefilter"` (the feature prefilter, default true).
 ///
 /// `"internal_test_panic"` = true is reserved for tests: it raises an internal error inside the
 /// library, which must come back as `GDR_ERROR_UNKNOWN` (no panic crosses the ABI).

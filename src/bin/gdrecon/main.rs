@@ -127,9 +127,13 @@ pub(crate) struct MethodArgs {
     /// filter: resolution levels (1 to 4).
     #[arg(long, default_value_t = FilterConfig::default().levels)]
     filter_levels: usize,
-    /// filter: gradient-enhancement iterations (0: no enhancement, the ablation).
+    /// filter: gradient-enhancement iterations (1000: the release's reference mode; 0: no
+    /// enhancement, the ablation).
     #[arg(long, default_value_t = FilterConfig::default().enhance_iterations)]
     filter_enhance_iterations: u32,
+    /// filter: skip the feature prefilter (its ablation).
+    #[arg(long)]
+    filter_no_prefilter: bool,
     /// gradnet: ONNX Runtime library to load first (then ORT_DYLIB_PATH, a library next to
     /// gdrecon, the project's Python environment).
     #[arg(long)]
@@ -189,6 +193,7 @@ impl MethodArgs {
                 GuideArg::L1 => FilterGuide::PoissonL1,
                 GuideArg::None => FilterGuide::Colour,
             },
+            prefilter: !self.filter_no_prefilter,
         }
     }
 

@@ -12,7 +12,8 @@
 //! [`enhance_reference`] is the release's schedule, literally: 1000 gradient-descent
 //! iterations with a step starting at 1e-4; the loss is checked at iterations below 20 and
 //! every 50th; when it rose above the best seen, the step halves and the image (and the best
-//! loss) revert to the start.
+//! loss) revert to the start. One addition: the steps after the last check are checked too,
+//! and if they raised the energy the result is the start (the release would return them).
 
 use rayon::prelude::*;
 
@@ -528,7 +529,15 @@ pub(crate) fn enhance_reference(
             }
         }
     }
-    let loss_end = loss(&cur, gx, gy, wt);
+    let mut loss_end = loss(&cur, gx, gy, wt);
+    if loss_end > best || !loss_end.is_finite() {
+        // The steps after the last check rose: the step was too large for them (seen on
+        // garbage frames, where they overflowed). The release returns the diverged image; we
+        // return the start, the guide. Every frame that descends to the end is unaffected.
+        reverts += 1;
+        cur.copy_from_slice(start);
+        loss_end = loss_start;
+    }
     let mut out = guide.clone();
     out.as_mut_slice().copy_from_slice(&cur);
     (
@@ -613,6 +622,10 @@ mod tests {
                     best = l;
                 }
             }
+        }
+        let l = loss(&cur, gx, gy, wt);
+        if l > best || !l.is_finite() {
+            cur.copy_from_slice(start);
         }
         cur
     }

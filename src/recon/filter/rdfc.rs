@@ -37,7 +37,7 @@
 use rayon::prelude::*;
 
 use super::fastmath::{exp_nonpositive, max, min};
-use super::util::reflect;
+use super::util::{reflect, PaddedRows};
 use crate::image::Image;
 
 /// One candidate filter: patch radius `f` and colour bandwidth (`None`: colour term off).
@@ -142,59 +142,6 @@ const TILE: (usize, usize) = (256, 16);
 /// Window offsets weighed together (see [`weigh_rows`]): pairs (720p: RDFC 1.17 s -> 1.09 s;
 /// groups of 4 were no faster).
 const GROUP: usize = 2;
-
-/// An image whose rows are padded left and right by `pad` columns (reflect-101), so that the
-/// column `reflect(x + dx)` of a window offset `dx` is `x + dx` of a padded row: a slice.
-struct Padded {
-    data: Vec<f32>,
-    channels: usize,
-    w: usize,
-    h: usize,
-    pad: usize,
-}
-
-impl Padded {
-    fn new(img: &Image, pad: usize) -> Self {
-        let (w, h) = img.size();
-        let stride = w + 2 * pad;
-        let s = img.as_slice();
-        let mut data = vec![0.0; img.channels() * h * stride];
-        data.par_chunks_mut(stride)
-            .enumerate()
-            .for_each(|(row, out)| {
-                let src = &s[row * w..(row + 1) * w];
-                out[pad..pad + w].copy_from_slice(src);
-                for j in (0..pad).chain(pad + w..stride) {
-                    out[j] = src[reflect(j as isize - pad as isize, w)];
-                }
-            });
-        Padded {
-            data,
-            channels: img.channels(),
-            w,
-            h,
-            pad,
-        }
-    }
-
-    /// [`Padded::row`] of channels 0, 1 and 2.
-    fn rows3(&self, y: usize, x0: usize, dx: isize, len: usize) -> [&[f32]; 3] {
-        [
-            self.row(0, y, x0, dx, len),
-            self.row(1, y, x0, dx, len),
-            self.row(2, y, x0, dx, len),
-        ]
-    }
-
-    /// Channel `c`, row `y`, columns `reflect(x0 + dx) ..` (`len` of them, `|dx| <= pad`).
-    fn row(&self, c: usize, y: usize, x0: usize, dx: isize, len: usize) -> &[f32] {
-        let start = (c * self.h + y) * (self.w + 2 * self.pad)
-            + (x0 + self.pad)
-                .checked_add_signed(dx)
-                .expect("offset within the padding");
-        &self.data[start..start + len]
-    }
-}
 
 /// Colour distance row (Eq. 5-6 without the bandwidth), summed over the 3 channels:
 /// `sum_c ((c_p - c_q)^2 - (v_p + min(v_p, v_q))) / (1e-10 + v_p + v_q)`.
@@ -388,11 +335,11 @@ fn sum_into<const K: usize>(out: &mut [f32], rows: &[&[f32]], init: bool) {
 
 /// What every tile of one [`nlm_candidates`] call shares.
 struct Nlm<'a> {
-    colour: Padded,
-    var: Padded,
-    data: Padded,
+    colour: PaddedRows,
+    var: PaddedRows,
+    data: PaddedRows,
     /// Each feature with `1 / (channels k_f^2 D_p)` per pixel.
-    features: Vec<(Padded, Vec<f32>)>,
+    features: Vec<(PaddedRows, Vec<f32>)>,
     radius: usize,
     candidates: &'a [Candidate],
     /// The distinct patch radii of the candidates with a colour term, and the largest.
@@ -602,15 +549,15 @@ pub(crate) fn nlm_candidates(
     radii.sort_unstable();
     radii.dedup();
     let nlm = Nlm {
-        colour: Padded::new(colour, radius),
-        var: Padded::new(var, radius),
-        data: Padded::new(data, radius),
+        colour: PaddedRows::new(colour, radius),
+        var: PaddedRows::new(var, radius),
+        data: PaddedRows::new(data, radius),
         features: features
             .iter()
             .map(|f| {
                 let ch = f.img.channels() as f32;
                 let inv = f.norm.iter().map(|&d| 1.0 / (ch * d)).collect();
-                (Padded::new(f.img, radius), inv)
+                (PaddedRows::new(f.img, radius), inv)
             })
             .collect(),
         radius,

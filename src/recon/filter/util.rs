@@ -1,9 +1,66 @@
 //! Small helpers shared by the filter's stages: borders, luminance, planes.
 
+use rayon::prelude::*;
+
+use crate::image::Image;
 pub(crate) use crate::recon::ops::reflect;
 
 /// Rec. 709 luminance weights.
 pub(crate) const LUMA: [f32; 3] = [0.2126, 0.7152, 0.0722];
+
+/// An image whose rows are padded left and right by `pad` columns (reflect-101), so that the
+/// column `reflect(x + dx)` of a window offset `dx` is `x + dx` of a padded row: a slice.
+pub(crate) struct PaddedRows {
+    data: Vec<f32>,
+    /// The image's channels, width and height (unpadded).
+    pub(crate) channels: usize,
+    pub(crate) w: usize,
+    pub(crate) h: usize,
+    pad: usize,
+}
+
+impl PaddedRows {
+    pub(crate) fn new(img: &Image, pad: usize) -> Self {
+        let (w, h) = img.size();
+        let stride = w + 2 * pad;
+        let s = img.as_slice();
+        let mut data = vec![0.0; img.channels() * h * stride];
+        data.par_chunks_mut(stride)
+            .enumerate()
+            .for_each(|(row, out)| {
+                let src = &s[row * w..(row + 1) * w];
+                out[pad..pad + w].copy_from_slice(src);
+                for j in (0..pad).chain(pad + w..stride) {
+                    out[j] = src[reflect(j as isize - pad as isize, w)];
+                }
+            });
+        PaddedRows {
+            data,
+            channels: img.channels(),
+            w,
+            h,
+            pad,
+        }
+    }
+
+    /// [`PaddedRows::row`] of channels 0, 1 and 2.
+    pub(crate) fn rows3(&self, y: usize, x0: usize, dx: isize, len: usize) -> [&[f32]; 3] {
+        [
+            self.row(0, y, x0, dx, len),
+            self.row(1, y, x0, dx, len),
+            self.row(2, y, x0, dx, len),
+        ]
+    }
+
+    /// Channel `c`, row `y`, columns `reflect(x0 + dx) ..` (`len` of them, `|dx| <= pad`).
+    pub(crate) fn row(&self, c: usize, y: usize, x0: usize, dx: isize, len: usize) -> &[f32] {
+        let start = (c * self.h + y) * (self.w + 2 * self.pad)
+            + (x0 + self.pad)
+                .checked_add_signed(dx)
+                .expect("offset within the padding");
+        &self.data[start..start + len]
+    }
+}
 
 #[cfg(test)]
 mod tests {

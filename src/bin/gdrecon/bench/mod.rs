@@ -41,14 +41,15 @@ pub struct BenchArgs {
     #[arg(long, default_value = "l2,l1")]
     methods: String,
     /// Time each method's speed/quality variants: l2; l1, l1:irls=5, l1:published; filter,
-    /// filter:levels=1, filter:guide=l1, filter:enhance=0, filter:guide=none (the ablations);
-    /// gradnet, gradnet:nofeat, gradnet:nobias.
+    /// filter:reference (the release's 1000 enhancement iterations), filter:levels=1,
+    /// filter:guide=l1, filter:enhance=0, filter:guide=none, filter:noprefilter (the
+    /// ablations); gradnet, gradnet:nofeat, gradnet:nobias.
     #[arg(long)]
     sweep: bool,
     /// Comma-separated variants METHOD[:OPTION...] instead of --methods, e.g.
     /// `l2,l1:irls=5:tol=0,filter:guide=l1,gradnet:nofeat`. Options: l2 alpha=X; l1 alpha=X,
-    /// irls=N, cg=N, tol=X, published, fast; filter levels=N, radius=N, enhance=N, guide=rdfc|l1|none;
-    /// gradnet nofeat, nobias, tile=N.
+    /// irls=N, cg=N, tol=X, published, fast; filter levels=N, radius=N, enhance=N,
+    /// guide=rdfc|l1|none, noprefilter, reference; gradnet nofeat, nobias, tile=N.
     #[arg(long, conflicts_with_all = ["sweep", "methods"])]
     settings: Option<String>,
     /// Also time every frame resized by these factors, e.g. 0.5,1,2 (nearest-neighbour; 1 is

@@ -4,6 +4,7 @@
 //! method and applies its options, so `MethodArgs::config` stays the one place that turns
 //! settings into a library [`MethodConfig`].
 
+use gdrecon::recon::FilterConfig;
 use gdrecon::{Method, MethodConfig};
 
 use crate::{GuideArg, L1Preset, MethodArgs};
@@ -40,10 +41,12 @@ pub fn sweep_names(method: Method) -> Vec<String> {
         Method::PoissonL1 => &["l1", "l1:irls=5", "l1:published"],
         Method::Filter => &[
             "filter",
+            "filter:reference",
             "filter:levels=1",
             "filter:guide=l1",
             "filter:enhance=0",
             "filter:guide=none",
+            "filter:noprefilter",
         ],
         Method::GradNet => &["gradnet", "gradnet:nofeat", "gradnet:nobias"],
         _ => return vec![method.name().to_owned()],
@@ -114,7 +117,9 @@ fn options_help(method: Method) -> &'static str {
     match method {
         Method::PoissonL2 => "alpha=X",
         Method::PoissonL1 => "alpha=X, irls=N, cg=N, tol=X, published, fast",
-        Method::Filter => "levels=N, radius=N, enhance=N (0: off), guide=rdfc|l1|none",
+        Method::Filter => {
+            "levels=N, radius=N, enhance=N (0: off), guide=rdfc|l1|none, noprefilter, reference"
+        }
         Method::GradNet => "nofeat, nobias, tile=N",
         _ => "none",
     }
@@ -165,6 +170,14 @@ fn apply_option(method: Method, option: &str, args: &mut MethodArgs) -> Result<(
         }
         (Method::Filter, "guide", Some(v)) => {
             args.filter_guide = guide(v)?;
+            true
+        }
+        (Method::Filter, "reference", None) => {
+            args.filter_enhance_iterations = FilterConfig::reference().enhance_iterations;
+            true
+        }
+        (Method::Filter, "noprefilter", None) => {
+            args.filter_no_prefilter = true;
             true
         }
         (Method::GradNet, "nofeat", None) => {
