@@ -7,7 +7,7 @@
 # Needs the validation set and the 720p frames (docs/data.md, docs/benchmarks.md say how to
 # render them) under $GDRECON_DATA (default ~/.cache/gdrecon/data), and ONNX Runtime for
 # gradnet (`bash onnx/setup.sh` once; onnx/env.sh is sourced here). Builds the release CLI in
-# $CARGO_TARGET_DIR (default target/). Takes 25-30 minutes on 2 cores; run it on an
+# $CARGO_TARGET_DIR (default target/). Takes about 8 minutes on 2 cores; run it on an
 # otherwise idle machine (summary.md records the load average). Re-running overwrites every
 # output; nothing else is touched.
 #
