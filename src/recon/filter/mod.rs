@@ -57,8 +57,8 @@ pub struct FilterConfig {
     /// Why 250: the descent is stopped early to regularise it, and on our validation set
     /// stopping sooner is no worse. Against 1000 iterations, the filter's relMSE over the 18
     /// validation frames is 0.62 % lower (geometric mean; 4 frames worse, by at most 0.66 %,
-    /// 14 better, by up to 2.5 %), and at 720p the filter takes about 0.8 s less (see
-    /// `docs/benchmarks.md`).
+    /// 14 better, by up to 2.5 %), and at 720p the filter takes 0.55 s less (3.22 -> 2.67 s on
+    /// cornell; `docs/benchmarks.md`).
     pub enhance_iterations: u32,
     /// The pre-denoiser. Default [`FilterGuide::Rdfc`], the release's.
     pub guide: FilterGuide,
@@ -374,7 +374,6 @@ impl Reconstructor for Filter {
             })
             .fold(0.0f32, f32::max);
         let scale = if peak > LIMIT { LIMIT / peak } else { 1.0 };
-
         if scale != 1.0 {
             report.note(format!(
                 "radiance up to {peak:e}: filtered at scale {scale:e}"
