@@ -193,3 +193,28 @@ fn strided_views_equal_packed_images() {
     let view = ndarray::ArrayView3::from_shape((h, w, 3).strides((w, 1, w * h)), &planar).unwrap();
     assert_eq!(Image::from_hwc(view), img);
 }
+
+#[test]
+fn garbage_features_leave_the_filter_finite() {
+    // Features are only "roughly in [0, 1]" by convention; huge values must not overflow the
+    // prefilter, RDFC, GLU or the QP into a non-finite result.
+    let (w, h) = (20, 18);
+    let mut albedo = Image::from_fn(3, h, w, |(c, y, x)| ((x + 2 * y + c) % 7) as f32 * 0.1);
+    albedo.as_mut_slice()[11] = 3e38;
+    albedo.as_mut_slice()[40] = -3e38;
+    let mut normal = Image::from_fn(3, h, w, |(c, _, _)| if c == 2 { 1.0 } else { 0.0 });
+    normal.as_mut_slice()[100] = 1e30;
+    let frame = base(w, h)
+        .image(Layer::Albedo, albedo)
+        .image(Layer::Normal, normal)
+        .spp(Some(4.0))
+        .build(Policy::Replace)
+        .unwrap();
+    let (out, report) = gdrecon::recon::reconstruct(
+        &frame,
+        &gdrecon::MethodConfig::default_for(gdrecon::Method::Filter),
+    )
+    .unwrap();
+    assert!(out.all_finite());
+    assert_eq!(report.output_repaired, 0, "{report}");
+}

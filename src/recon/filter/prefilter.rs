@@ -183,12 +183,13 @@ pub(crate) fn prefilter(f: &Image, v: &Image) -> Image {
                     spatial,
                 );
             }
-            // The centre's weight is 1, so `den >= 1`.
-            for i in 0..len {
-                let d = 1.0 / den[i];
-                n0[i] *= d;
-                n1[i] *= d;
-                n2[i] *= d;
+            // The centre's weight is 1, so `den >= 1`. Only a sum of weighted features near
+            // f32::MAX can overflow (garbage frames): such a pixel keeps its own value.
+            for (n, p) in [&mut *n0, &mut *n1, &mut *n2].into_iter().zip(fp) {
+                for ((n, &p), &den) in n.iter_mut().zip(p).zip(&*den) {
+                    let v = *n * (1.0 / den);
+                    *n = if v.is_finite() { v } else { p };
+                }
             }
             x0 += len;
         }
