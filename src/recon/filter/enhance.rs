@@ -111,12 +111,14 @@ const ENERGY_LANES: usize = 8;
 
 /// The variable part of the edges' energy, `sum_x d (a d / 2 - b)` with `d = hi - lo`, in f64:
 /// per lane `x mod 8` in order of `x` over the whole chunks of 8, then the lanes in order, then
-/// the remainder (a fixed order: the schedule compares energies exactly). An edge's energy `m (d - t)^2 + s d^2` is
-/// `(a / 2) d^2 - b d + m t^2` with the flux's `a = 2 (m + s)` and `b = 2 m t` ([`flux`]);
-/// `m t^2` does not depend on the image ([`Sweeper::constant`]). So the energy needs only what
-/// a step reads anyway, and is exactly the one whose gradient the steps follow (the f32 `a`
-/// and `b` included). Written over fixed-size chunks so that it vectorises (indexing through
-/// a closure kept it scalar: 4.9 % of the filter's time at 720p).
+/// the remainder (a fixed order: the schedule compares energies exactly).
+///
+/// An edge's energy `m (d - t)^2 + s d^2` is `(a / 2) d^2 - b d + m t^2` with the flux's
+/// `a = 2 (m + s)` and `b = 2 m t` ([`flux`]); `m t^2` does not depend on the image
+/// ([`Sweeper::constant`]). So the energy needs only what a step reads anyway, and is exactly
+/// the one whose gradient the steps follow (the f32 `a` and `b` included). Written over
+/// fixed-size chunks so that it vectorises (indexing through a closure kept it scalar: 4.9 %
+/// of the filter's time at 720p).
 #[multiversion::multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
     "x86_64+avx2+fma"
