@@ -223,24 +223,24 @@ impl Filter {
         let up = if levels > 1 && w.min(h) >= MIN_LEVEL_SIDE {
             let pad = glu::pad_even;
             let guide = pad(&inp.guide);
-            let features: Vec<Image> = [&inp.albedo, &inp.normal]
+            let (albedo, normal) = (
+                inp.albedo.as_deref().map(pad),
+                inp.normal.as_deref().map(pad),
+            );
+            // GLU's guide: [guide RGB, 0.1 albedo, 0.1 normal], written in place.
+            let features: Vec<&Image> = [&albedo, &normal]
                 .into_iter()
                 .flatten()
-                .map(|f| {
-                    let mut scaled = pad(f).into_owned();
-                    scaled.as_mut_slice().iter_mut().for_each(|v| *v *= 0.1);
-                    scaled
-                })
+                .map(|f| &**f)
                 .collect();
-            let guide_channels: Vec<&Image> = std::iter::once(&*guide).chain(&features).collect();
-            let (pw, ph) = guide_channels[0].size();
-            let nc: usize = guide_channels.iter().map(|g| g.channels()).sum();
-            let mut j = Image::zeros(nc, ph, pw);
-            let mut o = 0;
-            for g in &guide_channels {
-                let len = g.as_slice().len();
-                j.as_mut_slice()[o..o + len].copy_from_slice(g.as_slice());
-                o += len;
+            let (pw, ph) = guide.size();
+            let mut j = Image::zeros(3 + 3 * features.len(), ph, pw);
+            let (head, tail) = j.as_mut_slice().split_at_mut(guide.as_slice().len());
+            head.copy_from_slice(guide.as_slice());
+            for (dst, f) in tail.chunks_mut(3 * pw * ph).zip(&features) {
+                for (d, &v) in dst.iter_mut().zip(f.as_slice()) {
+                    *d = v * 0.1;
+                }
             }
             let fit = report.time(&format!("glu (level {depth})"), || glu::Glu::new(&j));
             let (pdx, pdy) = pad_gradients(&inp.dx, &inp.dy);
@@ -250,14 +250,8 @@ impl Filter {
                 var: fit.downsample(&pad(&inp.var), true),
                 dx: cdx,
                 dy: cdy,
-                albedo: inp
-                    .albedo
-                    .as_ref()
-                    .map(|a| Cow::Owned(fit.downsample(&pad(a), false))),
-                normal: inp
-                    .normal
-                    .as_ref()
-                    .map(|f| Cow::Owned(fit.downsample(&pad(f), false))),
+                albedo: albedo.map(|a| Cow::Owned(fit.downsample(&a, false))),
+                normal: normal.map(|f| Cow::Owned(fit.downsample(&f, false))),
                 guide: fit.downsample(&guide, false),
                 converged: None,
             };
