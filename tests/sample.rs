@@ -37,20 +37,22 @@ fn every_method_beats_the_base_image_on_the_sample() {
     }
 }
 
+/// The filter's relMSE against the frame's reference, and its report as text.
+fn filter_on(frame: &gdrecon::Frame, cfg: gdrecon::recon::FilterConfig) -> (f64, String) {
+    let (out, report) = reconstruct(frame, &MethodConfig::Filter(cfg)).unwrap();
+    let rel = metrics::compare(&out, frame.reference().unwrap())
+        .unwrap()
+        .rel_mse;
+    (rel, report.to_string())
+}
+
 #[test]
 fn each_filter_stage_earns_its_place_on_the_sample() {
     // The ablations (no pre-denoiser, no gradient enhancement, one level, no feature prefilter)
     // each lose to the full filter on the sample, and say in the report what they skipped.
     use gdrecon::recon::{FilterConfig, FilterGuide};
     let frame = io::read_bundle(SAMPLE, Policy::Replace).unwrap();
-    let reference = frame.reference().unwrap();
-    let rel = |cfg: FilterConfig| {
-        let (out, report) = reconstruct(&frame, &MethodConfig::Filter(cfg)).unwrap();
-        (
-            metrics::compare(&out, reference).unwrap().rel_mse,
-            report.to_string(),
-        )
-    };
+    let rel = |cfg: FilterConfig| filter_on(&frame, cfg);
     let (full, _) = rel(FilterConfig::default());
     let ablations = [
         (
@@ -101,14 +103,8 @@ fn the_fast_filter_is_no_worse_than_the_reference_mode_on_the_sample() {
     // the 18 validation frames is in docs/benchmarks.md.
     use gdrecon::recon::FilterConfig;
     let frame = io::read_bundle(SAMPLE, Policy::Replace).unwrap();
-    let reference = frame.reference().unwrap();
-    let run = |cfg: FilterConfig| {
-        let (out, report) = reconstruct(&frame, &MethodConfig::Filter(cfg)).unwrap();
-        let rel = metrics::compare(&out, reference).unwrap().rel_mse;
-        (rel, report.to_string())
-    };
-    let (fast, fast_report) = run(FilterConfig::default());
-    let (literal, literal_report) = run(FilterConfig::reference());
+    let (fast, fast_report) = filter_on(&frame, FilterConfig::default());
+    let (literal, literal_report) = filter_on(&frame, FilterConfig::reference());
     assert!(fast <= literal, "fast {fast:e} vs reference {literal:e}");
     assert!(
         fast_report.contains("enhancement 250 iterations"),

@@ -669,6 +669,7 @@ pub(crate) fn enhance_reference(
 
 #[cfg(test)]
 mod tests {
+    use super::super::util::with_threads;
     use super::*;
 
     fn ramp(w: usize, h: usize) -> Image {
@@ -753,6 +754,14 @@ mod tests {
         })
     }
 
+    /// A noisy textured start, the exact gradients of another texture and the weights
+    /// (albedo on, lambda 0.7).
+    fn problem(w: usize, h: usize) -> (Image, Image, Image, EnhanceWeights) {
+        let (dx, dy) = textured(w, h, 1).forward_differences();
+        let wt = EnhanceWeights::new(&dx, &dy, Some(&textured(w, h, 3)), None, 0.7);
+        (textured(w, h, 2), dx, dy, wt)
+    }
+
     #[test]
     fn fused_passes_equal_the_literal_sweeps_bit_for_bit() {
         // Odd sizes, a band split with halos (3 threads), features on, several schedule
@@ -764,9 +773,7 @@ mod tests {
             (5, 3, 30, 1),
             (1, 40, 60, 2),
         ] {
-            let clean = textured(w, h, 1);
-            let (dx, dy) = clean.forward_differences();
-            let mut noisy = textured(w, h, 2);
+            let (mut noisy, dx, dy, wt) = problem(w, h);
             noisy
                 .as_mut_slice()
                 .iter_mut()
@@ -776,14 +783,9 @@ mod tests {
                         *v = 0.0
                     }
                 });
-            let alb = textured(w, h, 3);
-            let wt = EnhanceWeights::new(&dx, &dy, Some(&alb), None, 0.7);
             let want = enhance_literal(&noisy, &dx, &dy, &wt, iters);
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            let (got, _) = pool.install(|| enhance_reference(&noisy, &dx, &dy, &wt, iters));
+            let (got, _) =
+                with_threads(threads, || enhance_reference(&noisy, &dx, &dy, &wt, iters));
             let same = got
                 .as_slice()
                 .iter()
@@ -804,19 +806,12 @@ mod tests {
             (1, 40, 2, 2),
             (9, 1, 1, 2),
         ] {
-            let clean = textured(w, h, 1);
-            let (dx, dy) = clean.forward_differences();
-            let noisy = textured(w, h, 2);
-            let alb = textured(w, h, 3);
-            let wt = EnhanceWeights::new(&dx, &dy, Some(&alb), None, 0.7);
+            let (noisy, dx, dy, wt) = problem(w, h);
             let sweeper = Sweeper::new(dx.as_slice(), dy.as_slice(), &wt);
             let mut out = vec![0.0; 3 * w * h];
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            let energy =
-                pool.install(|| sweeper.run(noisy.as_slice(), &mut out, 1e-3, steps, true));
+            let energy = with_threads(threads, || {
+                sweeper.run(noisy.as_slice(), &mut out, 1e-3, steps, true)
+            });
             let want = sweeper.loss(&out);
             assert_eq!(
                 energy.map(f64::to_bits),

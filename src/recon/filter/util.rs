@@ -62,6 +62,16 @@ impl PaddedRows {
     }
 }
 
+/// Runs `f` on a pool of `threads` workers (tests: results must not depend on the count).
+#[cfg(test)]
+pub(crate) fn with_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("a thread pool")
+        .install(f)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

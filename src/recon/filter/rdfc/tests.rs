@@ -1,6 +1,7 @@
 //! RDFC tests: the fast path against a copy of the previous straightforward implementation,
 //! tiny images, thread-count independence, and (ignored) real frames.
 
+use super::super::util::with_threads;
 use super::*;
 
 /// The implementation before tiling (one full-image pass per step and offset, `f32::exp`),
@@ -206,11 +207,9 @@ fn tiled_nlm_does_not_depend_on_the_thread_count() {
     let (colour, var, albedo, normal) = synthetic(TILE.0 + 5, 2 * TILE.1 + 3);
     let feats = [Feature::new(&albedo), Feature::new(&normal)];
     let run = |threads| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| nlm_candidates(&colour, &var, &feats, &colour, 4, &CANDIDATES))
+        with_threads(threads, || {
+            nlm_candidates(&colour, &var, &feats, &colour, 4, &CANDIDATES)
+        })
     };
     let (one, three) = (run(1), run(3));
     for ((a, ra), (b, rb)) in one.iter().zip(&three) {
