@@ -12,9 +12,17 @@ use crate::error::{Error, Result};
 
 /// Settings of a [`Context`].
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
+#[non_exhaustive]
 pub struct ContextOptions {
     /// Worker threads; `None` uses every available core.
     pub threads: Option<usize>,
+}
+
+impl ContextOptions {
+    /// Options with `threads` worker threads (`None`: every available core).
+    pub fn with_threads(threads: Option<usize>) -> Self {
+        ContextOptions { threads }
+    }
 }
 
 /// A thread pool shared by plans. Cheap to clone (reference counted).

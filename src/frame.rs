@@ -22,6 +22,7 @@ use crate::validate::{sanitize_layer, Policy, SanitizeReport};
 
 /// A layer of a frame bundle, named as in the EXR bundle (`layer.component`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[non_exhaustive]
 pub enum Layer {
     /// Base (primal) image `I_b`, RGB. Required.
     Color,

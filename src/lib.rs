@@ -43,6 +43,21 @@ pub use frame::{Frame, FrameBuilder, Layer};
 pub use image::Image;
 pub use metrics::Metrics;
 pub use progress::Progress;
-pub use recon::{Method, MethodConfig, Plan, Reconstructor};
+pub use recon::{Method, MethodConfig, Plan};
 pub use report::Report;
 pub use validate::Policy;
+
+// What a renderer may share between threads or move to a worker, checked at compile time: a
+// context, frames, images, configurations and reports are `Send + Sync`; a plan is `Send` (one
+// thread executes it at a time, as `execute` takes `&mut self`).
+const _: () = {
+    const fn send_sync<T: Send + Sync>() {}
+    const fn send<T: Send>() {}
+    send_sync::<Context>();
+    send_sync::<Frame>();
+    send_sync::<Image>();
+    send_sync::<MethodConfig>();
+    send_sync::<Report>();
+    send_sync::<Error>();
+    send::<Plan>();
+};

@@ -8,6 +8,7 @@ use crate::validate::SanitizeReport;
 
 /// One timed stage of a method.
 #[derive(Clone, Debug, PartialEq)]
+#[non_exhaustive]
 pub struct Stage {
     /// Short stage name (`"rhs"`, `"dct solve"`, `"irls"`...).
     pub name: String,
@@ -17,6 +18,7 @@ pub struct Stage {
 
 /// The account of one reconstruction.
 #[derive(Clone, Debug, Default, PartialEq)]
+#[non_exhaustive]
 pub struct Report {
     /// Method name as the CLI spells it.
     pub method: String,

@@ -22,6 +22,7 @@ use crate::image::Image;
 
 /// What validation does with values it cannot pass on.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[non_exhaustive]
 pub enum Policy {
     /// Replace bad values by 0 and count them (the default).
     #[default]
@@ -32,6 +33,7 @@ pub enum Policy {
 
 /// How many values of one layer were replaced.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[non_exhaustive]
 pub struct LayerCounts {
     /// NaN or infinite values replaced by 0.
     pub non_finite: u64,
@@ -48,6 +50,7 @@ impl LayerCounts {
 
 /// Per-layer replacement counts of a frame.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
+#[non_exhaustive]
 pub struct SanitizeReport {
     counts: BTreeMap<Layer, LayerCounts>,
 }

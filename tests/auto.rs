@@ -15,7 +15,7 @@ fn sample() -> Frame {
 }
 
 fn run(frame: &Frame, config: AutoConfig) -> Report {
-    let ctx = Context::new(ContextOptions { threads: Some(2) }).unwrap();
+    let ctx = Context::new(ContextOptions::with_threads(Some(2))).unwrap();
     let mut plan = Plan::new(
         &ctx,
         &MethodConfig::Auto(config),

@@ -57,7 +57,7 @@ fn sweep_writes_every_report_file() {
         [
             ("l2", "default"),
             ("l1", "default"),
-            ("l1", "irls=5"),
+            ("l1", "reweight_steps=5"),
             ("l1", "published")
         ]
     );
@@ -92,7 +92,9 @@ fn unknown_variant_is_named_in_the_error() {
     assert_eq!(output.status.code(), Some(1));
     let err = String::from_utf8_lossy(&output.stderr);
     assert!(
-        err.contains("variant 'l1:fastest'") && err.contains("irls=N"),
+        err.contains("variant 'l1:fastest'")
+            && err.contains("unknown preset 'fastest'")
+            && err.contains("published"),
         "{err}"
     );
 }

@@ -81,7 +81,7 @@ fn filter(ctx: *mut gdr_context, method: &str) -> *mut gdr_filter {
 
 /// The Rust API's output for `config`, interleaved RGB.
 fn rust_output(frame: &Frame, config: &MethodConfig) -> Vec<f32> {
-    let ctx = Context::new(ContextOptions { threads: Some(2) }).unwrap();
+    let ctx = Context::new(ContextOptions::with_threads(Some(2))).unwrap();
     let mut plan = Plan::new(&ctx, config, frame.width(), frame.height()).unwrap();
     let (image, _) = plan.execute(frame, &Progress::none()).unwrap();
     image.to_interleaved()
@@ -171,12 +171,10 @@ fn parameters_reach_the_method() {
     let frame = frame();
     let bufs = packed_inputs(&frame);
     let ctx = context();
-    let mut config = gdrecon::recon::PoissonL1Config {
-        alpha: 0.5,
-        reweight_steps: 6,
-        cg_iterations: 5,
-        ..Default::default()
-    };
+    let mut config = gdrecon::recon::PoissonL1Config::default();
+    config.alpha = 0.5;
+    config.reweight_steps = 6;
+    config.cg_iterations = 5;
     config.preconditioned = false;
     let expected = rust_output(&frame, &MethodConfig::PoissonL1(config));
     let f = filter(ctx, "l1");
@@ -205,13 +203,12 @@ fn filter_parameters_reach_the_method() {
     let frame = frame();
     let bufs = packed_inputs(&frame);
     let ctx = context();
-    let config = gdrecon::recon::FilterConfig {
-        radius: 3,
-        levels: 1,
-        enhance_iterations: 0,
-        guide: gdrecon::recon::FilterGuide::Colour,
-        prefilter: true,
-    };
+    let mut config = gdrecon::recon::FilterConfig::default();
+    config.radius = 3;
+    config.levels = 1;
+    config.enhance_iterations = 0;
+    config.guide = gdrecon::recon::FilterGuide::Colour;
+    config.prefilter = true;
     let expected = rust_output(&frame, &MethodConfig::Filter(config));
     let f = filter(ctx, "filter");
     let mut out = vec![0f32; W * H * 3];
@@ -228,7 +225,10 @@ fn filter_parameters_reach_the_method() {
             gdr_filter_set_int(f, c"guide".as_ptr(), 7),
             GDR_ERROR_INVALID_ARGUMENT,
         );
-        assert!(msg.contains("GDR_FILTER_GUIDE_NONE"), "{msg}");
+        assert!(
+            msg.contains("one of rdfc, l1, none") && msg.contains("index, 0 to 2"),
+            "{msg}"
+        );
         ok(gdr_filter_set_int(
             f,
             c"guide".as_ptr(),
@@ -609,11 +609,19 @@ fn every_error_has_its_code_and_message() {
         ));
         ok(gdr_filter_commit(f));
 
-        // Parameters out of range are caught at commit by the method's own validation.
-        ok(gdr_filter_set_float(f, c"alpha".as_ptr(), -1.0));
-        let m = fails(gdr_filter_commit(f), GDR_ERROR_INVALID_ARGUMENT);
-        assert!(m.contains("alpha"), "{m}");
-        fails(gdr_filter_execute(f), GDR_ERROR_INVALID_OPERATION);
+        // Parameters out of range are refused when set, with the table's range; the filter
+        // keeps its value.
+        let m = fails(
+            gdr_filter_set_float(f, c"alpha".as_ptr(), -1.0),
+            GDR_ERROR_INVALID_ARGUMENT,
+        );
+        assert!(
+            m.contains("alpha is -1, expected a float in (0, 10000]"),
+            "{m}"
+        );
+        let mut alpha = 0.0;
+        ok(gdr_filter_get_float(f, c"alpha".as_ptr(), &mut alpha));
+        assert_eq!(alpha, 0.2);
         ok(gdr_filter_set_float(f, c"alpha".as_ptr(), 0.2));
 
         // Strict mode refuses NaN (default: replaced and counted).
@@ -666,6 +674,7 @@ fn every_error_has_its_code_and_message() {
 }
 
 #[test]
+#[cfg(feature = "testing")]
 fn a_panic_becomes_a_status_and_the_filter_stays_usable() {
     let frame = frame();
     let bufs = packed_inputs(&frame);
@@ -875,6 +884,110 @@ fn version_matches_the_crate() {
     assert_eq!(names, Method::ALL.map(Method::name));
 }
 
+/// Every method's listing from C: what the Rust table says, each parameter settable to its
+/// default and readable back, and both ends of each range enforced by the setters.
+#[test]
+fn parameters_are_listed_from_the_tables_and_every_one_is_settable() {
+    let ctx = context();
+    for method in Method::ALL {
+        let name = CString::new(method.name()).unwrap();
+        let mut count = 0usize;
+        unsafe { ok(gdr_method_param_count(name.as_ptr(), &mut count)) };
+        let table = method.params();
+        assert_eq!(
+            count,
+            table.len() + 2,
+            "{method}: its own, then spp and strict"
+        );
+        let f = filter(ctx, method.name());
+        for index in 0..count {
+            let mut info = std::mem::MaybeUninit::<gdr_param_info>::uninit();
+            let info = unsafe {
+                ok(gdr_method_param(name.as_ptr(), index, info.as_mut_ptr()));
+                info.assume_init()
+            };
+            let pname = unsafe { CStr::from_ptr(info.name) }.to_str().unwrap();
+            let doc = unsafe { CStr::from_ptr(info.doc) }.to_str().unwrap();
+            assert!(!doc.is_empty(), "{method}.{pname} is documented");
+            if let Some(row) = table.get(index) {
+                assert_eq!(pname, row.name);
+                assert_eq!((info.min, info.max), (row.range.min, row.range.max));
+                let choices = unsafe { CStr::from_ptr(info.choices) }.to_str().unwrap();
+                assert_eq!(choices, row.choices.join(","));
+            } else {
+                assert_eq!(pname, ["spp", "strict"][index - table.len()]);
+            }
+            let cname = CString::new(pname).unwrap();
+            let p = cname.as_ptr();
+            unsafe {
+                match info.kind {
+                    gdr_param_kind::GDR_PARAM_FLOAT => {
+                        ok(gdr_filter_set_float(f, p, info.default_value as f32));
+                        let mut v = f32::NAN;
+                        ok(gdr_filter_get_float(f, p, &mut v));
+                        assert_eq!(f64::from(v), info.default_value, "{method}.{pname}");
+                        let below = if info.min_exclusive {
+                            info.min
+                        } else {
+                            info.min - 1.0
+                        };
+                        fails(
+                            gdr_filter_set_float(f, p, below as f32),
+                            GDR_ERROR_INVALID_ARGUMENT,
+                        );
+                        fails(
+                            gdr_filter_set_float(f, p, f32::NAN),
+                            GDR_ERROR_INVALID_ARGUMENT,
+                        );
+                    }
+                    gdr_param_kind::GDR_PARAM_INT | gdr_param_kind::GDR_PARAM_CHOICE => {
+                        ok(gdr_filter_set_int(f, p, info.default_value as i32));
+                        let mut v = -1;
+                        ok(gdr_filter_get_int(f, p, &mut v));
+                        assert_eq!(f64::from(v), info.default_value, "{method}.{pname}");
+                        ok(gdr_filter_set_int(f, p, info.max as i32));
+                        let m = fails(
+                            gdr_filter_set_int(f, p, info.max as i32 + 1),
+                            GDR_ERROR_INVALID_ARGUMENT,
+                        );
+                        assert!(m.contains(pname), "{m}");
+                        ok(gdr_filter_set_int(f, p, info.default_value as i32));
+                        fails(gdr_filter_set_float(f, p, 1.0), GDR_ERROR_INVALID_ARGUMENT);
+                    }
+                    gdr_param_kind::GDR_PARAM_BOOL => {
+                        ok(gdr_filter_set_bool(f, p, info.default_value != 0.0));
+                        let mut v = info.default_value == 0.0;
+                        ok(gdr_filter_get_bool(f, p, &mut v));
+                        assert_eq!(v, info.default_value != 0.0, "{method}.{pname}");
+                        fails(gdr_filter_set_int(f, p, 1), GDR_ERROR_INVALID_ARGUMENT);
+                    }
+                }
+            }
+        }
+        let mut info = std::mem::MaybeUninit::<gdr_param_info>::uninit();
+        unsafe {
+            let m = fails(
+                gdr_method_param(name.as_ptr(), count, info.as_mut_ptr()),
+                GDR_ERROR_INVALID_ARGUMENT,
+            );
+            assert!(m.contains(&format!("has {count}")), "{m}");
+            gdr_filter_release(&mut { f });
+        }
+    }
+    unsafe {
+        let mut count = 0usize;
+        fails(
+            gdr_method_param_count(c"nope".as_ptr(), &mut count),
+            GDR_ERROR_INVALID_ARGUMENT,
+        );
+        fails(
+            gdr_method_param_count(c"l1".as_ptr(), null_mut()),
+            GDR_ERROR_NULL_POINTER,
+        );
+        gdr_context_release(&mut { ctx });
+    }
+}
+
 /// Writes the inputs and the Rust API's outputs for the C tests (see tests/c/run.sh).
 #[test]
 #[ignore]
@@ -890,12 +1003,10 @@ fn write_reference_for_c() {
         bytes.extend(interleaved(&frame, l).iter().flat_map(|v| v.to_le_bytes()));
     }
     std::fs::write(dir.join("frame.bin"), bytes).unwrap();
-    let custom = gdrecon::recon::PoissonL1Config {
-        alpha: 0.5,
-        reweight_steps: 6,
-        cg_iterations: 5,
-        ..Default::default()
-    };
+    let mut custom = gdrecon::recon::PoissonL1Config::default();
+    custom.alpha = 0.5;
+    custom.reweight_steps = 6;
+    custom.cg_iterations = 5;
     for (name, config) in [
         ("l2", MethodConfig::default_for(Method::PoissonL2)),
         ("l1", MethodConfig::default_for(Method::PoissonL1)),

@@ -116,7 +116,7 @@ fn errors_are_one_line_with_nonzero_exit() {
     let a = gdrecon()
         .arg("reconstruct")
         .arg(&bundle)
-        .args(["--alpha=-1", "-o"])
+        .args(["--param", "alpha=-1", "-o"])
         .arg(dir.path().join("o.exr"))
         .assert()
         .code(1);
@@ -136,4 +136,75 @@ fn bench_prints_a_table_and_csv() {
     assert!(text.contains("l2") && text.contains("l1"), "{text}");
     let table = std::fs::read_to_string(&csv).unwrap();
     assert_eq!(table.lines().count(), 3, "{table}");
+}
+
+#[test]
+#[cfg(not(feature = "testing"))]
+fn parameters_doc_is_generated_from_the_tables() {
+    // docs/PARAMETERS.md is what `gdrecon params --markdown` prints: regenerate it with
+    // `cargo run --release -- params --markdown > docs/PARAMETERS.md` when a table changes.
+    let generated = out(gdrecon().args(["params", "--markdown"]));
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/docs/PARAMETERS.md");
+    let committed = std::fs::read_to_string(path).unwrap();
+    assert_eq!(
+        committed, generated,
+        "docs/PARAMETERS.md is stale: regenerate it with `gdrecon params --markdown`"
+    );
+}
+
+#[test]
+fn parameters_are_set_by_name_and_checked_against_their_range() {
+    let dir = tempfile::tempdir().unwrap();
+    let bundle = dir.path().join("demo.exr");
+    out(gdrecon()
+        .args(["demo", "--width", "40", "--height", "24", "-o"])
+        .arg(&bundle));
+    let listing = out(gdrecon().args(["params", "l1"]));
+    assert!(
+        listing.contains("reweight_steps") && listing.contains("preset published"),
+        "{listing}"
+    );
+    let run = |args: &[&str]| {
+        let mut cmd = gdrecon();
+        cmd.arg("reconstruct")
+            .arg(&bundle)
+            .args(args)
+            .arg("-o")
+            .arg(dir.path().join("o.exr"));
+        cmd.assert()
+    };
+    run(&[
+        "-m",
+        "l1",
+        "--preset",
+        "published",
+        "-p",
+        "reweight_steps=3",
+    ])
+    .success();
+    run(&["-m", "filter", "-p", "guide=l1", "-p", "prefilter=false"]).success();
+    run(&["-m", "auto", "-p", "l1.alpha=0.3", "-p", "filter.levels=1"]).success();
+    for (args, needle) in [
+        (
+            &["-m", "filter", "-p", "alpha=0.3"][..],
+            "unknown parameter 'alpha' for method 'filter'",
+        ),
+        (
+            &["-m", "filter", "-p", "levels=9"][..],
+            "levels is 9, expected an integer in [1, 4]",
+        ),
+        (
+            &["-m", "filter", "-p", "guide=oidn"][..],
+            "expected one of rdfc, l1, none",
+        ),
+        (&["-m", "l1", "-p", "alpha"][..], "write NAME=VALUE"),
+        (&["-m", "l2", "--preset", "published"][..], "unknown preset"),
+    ] {
+        let a = run(args).code(1);
+        let err = String::from_utf8(a.get_output().stderr.clone()).unwrap();
+        assert!(
+            err.contains(needle) && err.lines().count() == 1,
+            "{args:?}: {err}"
+        );
+    }
 }

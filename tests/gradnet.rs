@@ -29,7 +29,7 @@ fn expected(name: &str) -> Image {
 }
 
 fn context() -> Context {
-    Context::new(ContextOptions { threads: Some(2) }).unwrap()
+    Context::new(ContextOptions::with_threads(Some(2))).unwrap()
 }
 
 fn run(frame: &Frame, config: GradNetConfig) -> gdrecon::Result<Image> {
@@ -306,10 +306,7 @@ fn thread_count_changes_results_only_by_rounding() {
     let config = MethodConfig::GradNet(GradNetConfig::default());
     let mut outs = Vec::new();
     for threads in [1, 2, 3] {
-        let ctx = Context::new(ContextOptions {
-            threads: Some(threads),
-        })
-        .unwrap();
+        let ctx = Context::new(ContextOptions::with_threads(Some(threads))).unwrap();
         let mut plan = Plan::new(&ctx, &config, frame.width(), frame.height()).unwrap();
         outs.push(plan.execute(&frame, &Progress::none()).unwrap().0);
     }

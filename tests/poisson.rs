@@ -3,13 +3,13 @@
 mod common;
 
 use common::*;
-use gdrecon::recon::{reconstruct, PoissonL1Config, PoissonL2Config};
-use gdrecon::{metrics, Context, ContextOptions, Image, MethodConfig, Plan, Progress};
+use gdrecon::recon::{reconstruct, PoissonL1Config, PoissonL2Config, Value};
+use gdrecon::{metrics, Context, ContextOptions, Image, Method, MethodConfig, Plan, Progress};
 
 fn l2(frame: &gdrecon::Frame, alpha: f32) -> Image {
-    reconstruct(frame, &MethodConfig::PoissonL2(PoissonL2Config { alpha }))
-        .unwrap()
-        .0
+    let mut config = MethodConfig::default_for(Method::PoissonL2);
+    config.set("alpha", Value::Float(alpha)).unwrap();
+    reconstruct(frame, &config).unwrap().0
 }
 
 fn l1(frame: &gdrecon::Frame, config: PoissonL1Config) -> Image {
@@ -127,12 +127,10 @@ fn zero_gradients_smooth_the_base() {
 #[test]
 fn l1_matches_naive_irls_reference() {
     let (frame, _) = noisy_frame(12, 10, 11);
-    let config = PoissonL1Config {
-        reweight_steps: 6,
-        cg_iterations: 500,
-        cg_tolerance: 1e-6,
-        ..PoissonL1Config::default()
-    };
+    let mut config = PoissonL1Config::default();
+    config.reweight_steps = 6;
+    config.cg_iterations = 500;
+    config.cg_tolerance = 1e-6;
     let ours = to_f64(&l1(&frame, config));
     let reference = reference_l1(&frame, 0.2, 6);
     let d = rel_max_diff(&ours, &reference);
@@ -203,20 +201,15 @@ fn published_preset_runs_its_fixed_schedule() {
 #[test]
 fn results_are_bit_identical_for_any_thread_count() {
     let frame = gdrecon::synth::synthetic_frame(97, 61, 8.0, 4);
-    let small = gdrecon::recon::FilterConfig {
-        enhance_iterations: 50,
-        ..Default::default()
-    };
+    let mut small = gdrecon::recon::FilterConfig::default();
+    small.enhance_iterations = 50;
     for config in [
         MethodConfig::PoissonL2(PoissonL2Config::default()),
         MethodConfig::PoissonL1(PoissonL1Config::default()),
         MethodConfig::Filter(small),
     ] {
         let run = |threads| {
-            let ctx = Context::new(ContextOptions {
-                threads: Some(threads),
-            })
-            .unwrap();
+            let ctx = Context::new(ContextOptions::with_threads(Some(threads))).unwrap();
             let mut plan = Plan::new(&ctx, &config, frame.width(), frame.height()).unwrap();
             plan.execute(&frame, &Progress::none()).unwrap().0
         };
@@ -284,36 +277,23 @@ fn progress_reaches_one_and_cancellation_stops() {
 #[test]
 fn invalid_settings_are_rejected_with_the_value() {
     let (frame, _) = noisy_frame(8, 8, 1);
+    // Fields set directly (bypassing `MethodConfig::set`'s checks) are checked at plan time.
+    let l2 = |alpha: f32| {
+        let mut c = PoissonL2Config::default();
+        c.alpha = alpha;
+        MethodConfig::PoissonL2(c)
+    };
+    let l1 = |set: fn(&mut PoissonL1Config)| {
+        let mut c = PoissonL1Config::default();
+        set(&mut c);
+        MethodConfig::PoissonL1(c)
+    };
     for (config, needle) in [
-        (
-            MethodConfig::PoissonL2(PoissonL2Config { alpha: -1.0 }),
-            "alpha is -1",
-        ),
-        (
-            MethodConfig::PoissonL2(PoissonL2Config { alpha: f32::NAN }),
-            "alpha is NaN",
-        ),
-        (
-            MethodConfig::PoissonL1(PoissonL1Config {
-                alpha: 0.0,
-                ..Default::default()
-            }),
-            "alpha is 0",
-        ),
-        (
-            MethodConfig::PoissonL1(PoissonL1Config {
-                reweight_steps: 0,
-                ..Default::default()
-            }),
-            "reweight_steps is 0",
-        ),
-        (
-            MethodConfig::PoissonL1(PoissonL1Config {
-                cg_tolerance: 2.0,
-                ..Default::default()
-            }),
-            "cg_tolerance is 2",
-        ),
+        (l2(-1.0), "alpha is -1"),
+        (l2(f32::NAN), "alpha is NaN"),
+        (l1(|c| c.alpha = 0.0), "alpha is 0"),
+        (l1(|c| c.reweight_steps = 0), "reweight_steps is 0"),
+        (l1(|c| c.cg_tolerance = 2.0), "cg_tolerance is 2"),
     ] {
         let e = reconstruct(&frame, &config).unwrap_err();
         assert!(

@@ -68,10 +68,7 @@ fn max_gradient(frame: &Frame) -> f64 {
 }
 
 fn run(frame: &Frame, config: &MethodConfig, threads: usize) -> Image {
-    let ctx = Context::new(ContextOptions {
-        threads: Some(threads),
-    })
-    .unwrap();
+    let ctx = Context::new(ContextOptions::with_threads(Some(threads))).unwrap();
     let mut plan = Plan::new(&ctx, config, frame.width(), frame.height()).unwrap();
     let (out, report) = plan.execute(frame, &Progress::none()).unwrap();
     assert_eq!(

@@ -42,7 +42,7 @@ fn half_empty(pad: usize) -> Frame {
 }
 
 fn run(frame: &Frame, config: MethodConfig) -> (Image, Report) {
-    let ctx = Context::new(ContextOptions { threads: Some(2) }).unwrap();
+    let ctx = Context::new(ContextOptions::with_threads(Some(2))).unwrap();
     Plan::new(&ctx, &config, frame.width(), frame.height())
         .unwrap()
         .execute(frame, &Progress::none())

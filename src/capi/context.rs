@@ -241,7 +241,7 @@ pub unsafe extern "C" fn gdr_context_commit(ctx: *mut gdr_context) -> gdr_error 
         let ctx = context_ref(ctx)?;
         let mut s = ctx.settings();
         frozen(&s, "the context")?;
-        let pool = Context::new(ContextOptions { threads: s.threads })?;
+        let pool = Context::new(ContextOptions::with_threads(s.threads))?;
         let threads = pool.threads();
         s.committed = Some(pool);
         drop(s);

@@ -8,13 +8,14 @@ use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
 use super::context::{context_arc, gdr_context};
 use super::gdr_error::*;
 use super::gdr_log_level::*;
+use super::param::{lookup, Setter};
 use super::view::{Layout, View};
 use super::{c_str, err, gdr_error, gdr_progress_fn, guard, out_ptr, CResult, CapiError, UserPtr};
 use crate::context::Context;
 use crate::frame::{FrameBuilder, Layer};
 use crate::image::Image;
 use crate::progress::Progress;
-use crate::recon::{FilterGuide, Method, MethodConfig, Plan};
+use crate::recon::{Kind, Method, MethodConfig, Plan, Value};
 use crate::validate::Policy;
 
 /// A reconstruction filter: one method, its parameters, image views and plan (opaque).
@@ -40,41 +41,9 @@ struct State {
     report: CString,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Kind {
-    Float,
-    Int,
-    Bool,
-}
-
-#[derive(Clone, Copy, Debug)]
-enum Value {
-    Float(f32),
-    Int(i32),
-    Bool(bool),
-}
-
-impl Kind {
-    fn name(self) -> &'static str {
-        match self {
-            Kind::Float => "float",
-            Kind::Int => "int",
-            Kind::Bool => "bool",
-        }
-    }
-}
-
-impl Value {
-    fn kind(self) -> Kind {
-        match self {
-            Value::Float(_) => Kind::Float,
-            Value::Int(_) => Kind::Int,
-            Value::Bool(_) => Kind::Bool,
-        }
-    }
-}
-
-/// Deliberately panics when set to true: lets tests check that no panic crosses the ABI.
+/// Deliberately panics when set to true (cargo feature `testing` only): lets tests check that
+/// no panic crosses the ABI.
+#[cfg(feature = "testing")]
 const TEST_PANIC: &str = "internal_test_panic";
 
 /// Filter `"guide"`: RDFC's first pass, as the authors' release (the default).
@@ -84,176 +53,46 @@ pub const GDR_FILTER_GUIDE_L1: i32 = 1;
 /// Filter `"guide"`: no pre-denoiser, the noisy colour itself (an ablation).
 pub const GDR_FILTER_GUIDE_NONE: i32 = 2;
 
-/// The parameters of a method, with their types.
-fn params(method: Method) -> &'static [(&'static str, Kind)] {
-    use Kind::*;
-    match method {
-        Method::PoissonL2 => &[("alpha", Float), ("spp", Float), ("strict", Bool)],
-        Method::PoissonL1 => &[
-            ("alpha", Float),
-            ("reweight_steps", Int),
-            ("cg_iterations", Int),
-            ("cg_tolerance", Float),
-            ("preconditioned", Bool),
-            ("spp", Float),
-            ("strict", Bool),
-        ],
-        Method::GradNet => &[
-            ("tile_size", Int),
-            ("bias_correction", Bool),
-            ("use_features", Bool),
-            ("spp", Float),
-            ("strict", Bool),
-        ],
-        Method::Filter => &[
-            ("radius", Int),
-            ("levels", Int),
-            ("enhance_iterations", Int),
-            ("guide", Int),
-            ("prefilter", Bool),
-            ("spp", Float),
-            ("strict", Bool),
-        ],
-        #[allow(unreachable_patterns)]
-        _ => &[("spp", Float), ("strict", Bool)],
-    }
-}
-
-/// Checks that `name` is a parameter of the filter's method with type `kind`.
-fn check_param(config: &MethodConfig, name: &str, kind: Kind) -> CResult {
-    let method = config.method();
-    let list = params(method);
-    match list.iter().find(|(n, _)| *n == name) {
-        Some((_, k)) if *k == kind => Ok(()),
-        Some((_, k)) => err(
-            GDR_ERROR_INVALID_ARGUMENT,
-            format!(
-                "parameter '{name}' of method '{method}' is a {0}: use gdr_filter_set_{0} / gdr_filter_get_{0}",
-                k.name()
-            ),
-        ),
-        None if name == TEST_PANIC && kind == Kind::Bool => Ok(()),
-        None => err(
-            GDR_ERROR_INVALID_ARGUMENT,
-            format!(
-                "unknown parameter '{name}' for method '{method}', expected one of: {}",
-                list.iter()
-                    .map(|(n, k)| format!("{n} ({})", k.name()))
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            ),
-        ),
-    }
-}
-
-fn to_u32(name: &str, v: i32) -> CResult<u32> {
-    u32::try_from(v).map_err(|_| {
-        CapiError::new(
-            GDR_ERROR_INVALID_ARGUMENT,
-            format!("{name} is {v}, expected a non-negative value"),
-        )
-    })
-}
+// The C constants are the indices of the guide choice in the filter's parameter table.
+const _: () = {
+    assert!(GDR_FILTER_GUIDE_RDFC == 0 && GDR_FILTER_GUIDE_L1 == 1 && GDR_FILTER_GUIDE_NONE == 2);
+};
 
 impl State {
-    fn set(&mut self, name: &str, value: Value) -> CResult {
-        check_param(&self.config, name, value.kind())?;
-        use MethodConfig as M;
-        use Value as V;
-        match (name, &mut self.config, value) {
-            (TEST_PANIC, _, V::Bool(true)) => panic!("deliberate panic ({TEST_PANIC})"),
-            (TEST_PANIC, _, _) => {}
-            ("spp", _, V::Float(s)) => {
-                if !(s.is_finite() && s >= 0.0) {
-                    return err(
-                        GDR_ERROR_INVALID_ARGUMENT,
-                        format!("spp is {s}, expected a positive number (or 0: unknown)"),
-                    );
-                }
-                self.spp = s;
+    fn set(&mut self, name: &str, setter: Setter, value: Value) -> CResult {
+        #[cfg(feature = "testing")]
+        if name == TEST_PANIC && setter == Setter::Bool {
+            if value == Value::Bool(true) {
+                panic!("deliberate panic ({TEST_PANIC})");
             }
-            ("strict", _, V::Bool(b)) => self.strict = b,
-            ("alpha", M::PoissonL2(c), V::Float(a)) => c.alpha = a,
-            ("alpha", M::PoissonL1(c), V::Float(a)) => c.alpha = a,
-            ("reweight_steps", M::PoissonL1(c), V::Int(i)) => c.reweight_steps = to_u32(name, i)?,
-            ("cg_iterations", M::PoissonL1(c), V::Int(i)) => c.cg_iterations = to_u32(name, i)?,
-            ("cg_tolerance", M::PoissonL1(c), V::Float(t)) => c.cg_tolerance = t,
-            ("preconditioned", M::PoissonL1(c), V::Bool(b)) => c.preconditioned = b,
-            ("tile_size", M::GradNet(c), V::Int(i)) => c.tile_size = to_u32(name, i)? as usize,
-            ("bias_correction", M::GradNet(c), V::Bool(b)) => c.bias_correction = b,
-            ("use_features", M::GradNet(c), V::Bool(b)) => c.use_features = b,
-            ("radius", M::Filter(c), V::Int(i)) => c.radius = to_u32(name, i)? as usize,
-            ("levels", M::Filter(c), V::Int(i)) => c.levels = to_u32(name, i)? as usize,
-            ("enhance_iterations", M::Filter(c), V::Int(i)) => {
-                c.enhance_iterations = to_u32(name, i)?
+            return Ok(());
+        }
+        let info = lookup(self.config.method(), name, setter)?;
+        let value = info.check(value).map_err(|e| {
+            let mut e = CapiError::from(e);
+            if info.kind == Kind::Choice {
+                e.message += &format!(
+                    " (from C: its index, 0 to {})",
+                    info.choices.len().saturating_sub(1)
+                );
             }
-            ("prefilter", M::Filter(c), V::Bool(b)) => c.prefilter = b,
-            ("guide", M::Filter(c), V::Int(i)) => {
-                c.guide = match i {
-                    GDR_FILTER_GUIDE_RDFC => FilterGuide::Rdfc,
-                    GDR_FILTER_GUIDE_L1 => FilterGuide::PoissonL1,
-                    GDR_FILTER_GUIDE_NONE => FilterGuide::Colour,
-                    _ => {
-                        return err(
-                            GDR_ERROR_INVALID_ARGUMENT,
-                            format!(
-                                "guide is {i}, expected GDR_FILTER_GUIDE_RDFC (0), \
-                                 GDR_FILTER_GUIDE_L1 (1) or GDR_FILTER_GUIDE_NONE (2)"
-                            ),
-                        )
-                    }
-                }
-            }
-            _ => {
-                return err(
-                    GDR_ERROR_UNKNOWN,
-                    format!("parameter '{name}' has no setter"),
-                )
-            }
+            e
+        })?;
+        match (name, value) {
+            ("spp", Value::Float(s)) => self.spp = s,
+            ("strict", Value::Bool(b)) => self.strict = b,
+            _ => self.config.set(name, value)?,
         }
         self.dirty = true;
         Ok(())
     }
 
-    fn get(&self, name: &str, kind: Kind) -> CResult<Value> {
-        check_param(&self.config, name, kind)?;
-        use MethodConfig as M;
-        Ok(match (name, &self.config) {
-            (TEST_PANIC, _) => Value::Bool(false),
-            ("spp", _) => Value::Float(self.spp),
-            ("strict", _) => Value::Bool(self.strict),
-            ("alpha", M::PoissonL2(c)) => Value::Float(c.alpha),
-            ("alpha", M::PoissonL1(c)) => Value::Float(c.alpha),
-            ("reweight_steps", M::PoissonL1(c)) => {
-                Value::Int(i32::try_from(c.reweight_steps).unwrap_or(i32::MAX))
-            }
-            ("cg_iterations", M::PoissonL1(c)) => {
-                Value::Int(i32::try_from(c.cg_iterations).unwrap_or(i32::MAX))
-            }
-            ("cg_tolerance", M::PoissonL1(c)) => Value::Float(c.cg_tolerance),
-            ("preconditioned", M::PoissonL1(c)) => Value::Bool(c.preconditioned),
-            ("tile_size", M::GradNet(c)) => {
-                Value::Int(i32::try_from(c.tile_size).unwrap_or(i32::MAX))
-            }
-            ("bias_correction", M::GradNet(c)) => Value::Bool(c.bias_correction),
-            ("use_features", M::GradNet(c)) => Value::Bool(c.use_features),
-            ("radius", M::Filter(c)) => Value::Int(i32::try_from(c.radius).unwrap_or(i32::MAX)),
-            ("levels", M::Filter(c)) => Value::Int(i32::try_from(c.levels).unwrap_or(i32::MAX)),
-            ("enhance_iterations", M::Filter(c)) => {
-                Value::Int(i32::try_from(c.enhance_iterations).unwrap_or(i32::MAX))
-            }
-            ("prefilter", M::Filter(c)) => Value::Bool(c.prefilter),
-            ("guide", M::Filter(c)) => Value::Int(match c.guide {
-                FilterGuide::Rdfc => GDR_FILTER_GUIDE_RDFC,
-                FilterGuide::PoissonL1 => GDR_FILTER_GUIDE_L1,
-                FilterGuide::Colour => GDR_FILTER_GUIDE_NONE,
-            }),
-            _ => {
-                return err(
-                    GDR_ERROR_UNKNOWN,
-                    format!("parameter '{name}' has no getter"),
-                )
-            }
+    fn get(&self, name: &str, setter: Setter) -> CResult<Value> {
+        lookup(self.config.method(), name, setter)?;
+        Ok(match name {
+            "spp" => Value::Float(self.spp),
+            "strict" => Value::Bool(self.strict),
+            _ => self.config.get(name)?,
         })
     }
 
@@ -376,12 +215,7 @@ pub unsafe extern "C" fn gdr_filter_new(
         let method: Method = c_str(method, "method")?.parse()?;
         let pool = context.pool()?;
         let mut config = MethodConfig::default_for(method);
-        let gradnet = match &mut config {
-            MethodConfig::GradNet(c) => Some(c),
-            MethodConfig::Auto(c) => Some(&mut c.gradnet),
-            _ => None,
-        };
-        if let Some(c) = gradnet {
+        if let Some(c) = config.gradnet_mut() {
             let (runtime, model) = context.gradnet_paths();
             c.runtime = runtime.map(Into::into);
             c.model = model.map(Into::into);
@@ -434,7 +268,10 @@ pub unsafe extern "C" fn gdr_filter_release(filter: *mut *mut gdr_filter) -> gdr
     })
 }
 
-/// Set a float parameter: `"alpha"` (screened Poisson weight), `"spp"` (0 = unknown); l1 also `"cg_tolerance"`.
+/// Set a float parameter of the filter's method (see `gdr_method_param`, or docs/PARAMETERS.md), or `"spp"` (0 = unknown).
+///
+/// An unknown name, a parameter of another type or a value out of its range is
+/// `GDR_ERROR_INVALID_ARGUMENT`, with a message that lists the names or states the range.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_set_float(
     filter: *mut gdr_filter,
@@ -442,11 +279,11 @@ pub unsafe extern "C" fn gdr_filter_set_float(
     value: f32,
 ) -> gdr_error {
     with_filter("gdr_filter_set_float", filter, |_, st| {
-        st.set(c_str(name, "name")?, Value::Float(value))
+        st.set(c_str(name, "name")?, Setter::Float, Value::Float(value))
     })
 }
 
-/// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step); gradnet `"tile_size"` (frames above tile_size² pixels run in tiles of that side; 0 = never); filter `"radius"` (3 or 4, default 4), `"levels"` (1 to 4, default 2), `"enhance_iterations"` (default 250, the fast mode; 1000 = the release's reference mode; 0 = no gradient enhancement), `"guide"` (a `GDR_FILTER_GUIDE_*` value, default RDFC).
+/// Set an integer parameter of the filter's method, or a choice by its index (filter `"guide"`: a `GDR_FILTER_GUIDE_*` value).
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_set_int(
     filter: *mut gdr_filter,
@@ -454,14 +291,11 @@ pub unsafe extern "C" fn gdr_filter_set_int(
     value: i32,
 ) -> gdr_error {
     with_filter("gdr_filter_set_int", filter, |_, st| {
-        st.set(c_str(name, "name")?, Value::Int(value))
+        st.set(c_str(name, "name")?, Setter::Int, Value::Int(value.into()))
     })
 }
 
-/// Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`; gradnet `"bias_correction"`, `"use_features"` (both default true); filter `"prefilter"` (the feature prefilter, default true).
-///
-/// `"internal_test_panic"` = true is reserved for tests: it raises an internal error inside the
-/// library, which must come back as `GDR_ERROR_UNKNOWN` (no panic crosses the ABI).
+/// Set a boolean parameter of the filter's method, or `"strict"` (NaN/Inf/negative input is an error instead of replaced).
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_set_bool(
     filter: *mut gdr_filter,
@@ -469,7 +303,7 @@ pub unsafe extern "C" fn gdr_filter_set_bool(
     value: bool,
 ) -> gdr_error {
     with_filter("gdr_filter_set_bool", filter, |_, st| {
-        st.set(c_str(name, "name")?, Value::Bool(value))
+        st.set(c_str(name, "name")?, Setter::Bool, Value::Bool(value))
     })
 }
 
@@ -482,14 +316,14 @@ pub unsafe extern "C" fn gdr_filter_get_float(
 ) -> gdr_error {
     with_filter("gdr_filter_get_float", filter, |_, st| {
         let out = out_ptr(value, "value")?;
-        if let Value::Float(v) = st.get(c_str(name, "name")?, Kind::Float)? {
+        if let Value::Float(v) = st.get(c_str(name, "name")?, Setter::Float)? {
             *out = v;
         }
         Ok(())
     })
 }
 
-/// Read an integer parameter into `*value`.
+/// Read an integer (or choice index) parameter into `*value`.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_get_int(
     filter: *mut gdr_filter,
@@ -498,8 +332,9 @@ pub unsafe extern "C" fn gdr_filter_get_int(
 ) -> gdr_error {
     with_filter("gdr_filter_get_int", filter, |_, st| {
         let out = out_ptr(value, "value")?;
-        if let Value::Int(v) = st.get(c_str(name, "name")?, Kind::Int)? {
-            *out = v;
+        if let Value::Int(v) = st.get(c_str(name, "name")?, Setter::Int)? {
+            // Every int parameter's range lies within i32 (the tables' ranges say so).
+            *out = i32::try_from(v).unwrap_or(i32::MAX);
         }
         Ok(())
     })
@@ -514,7 +349,7 @@ pub unsafe extern "C" fn gdr_filter_get_bool(
 ) -> gdr_error {
     with_filter("gdr_filter_get_bool", filter, |_, st| {
         let out = out_ptr(value, "value")?;
-        if let Value::Bool(v) = st.get(c_str(name, "name")?, Kind::Bool)? {
+        if let Value::Bool(v) = st.get(c_str(name, "name")?, Setter::Bool)? {
             *out = v;
         }
         Ok(())

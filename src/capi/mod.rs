@@ -18,6 +18,7 @@
 mod context;
 mod filter;
 mod frame;
+mod param;
 mod view;
 
 use std::cell::RefCell;
@@ -28,6 +29,7 @@ use std::sync::OnceLock;
 pub use context::*;
 pub use filter::*;
 pub use frame::*;
+pub use param::*;
 
 use crate::error::Error;
 use crate::recon::Method;
@@ -155,8 +157,6 @@ impl From<Error> for CapiError {
             Error::Cancelled => GDR_ERROR_CANCELLED,
             Error::Model(_) => GDR_ERROR_INVALID_MODEL,
             Error::Runtime(_) => GDR_ERROR_RUNTIME,
-            #[allow(unreachable_patterns)]
-            _ => GDR_ERROR_UNKNOWN,
         };
         CapiError::new(code, e.to_string())
     }

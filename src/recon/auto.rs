@@ -14,7 +14,10 @@
 //! The chosen method is planned on the first frame that needs it and kept: a sequence of
 //! frames of one kind plans once.
 
-use super::{FilterConfig, GradNetConfig, Method, MethodConfig, PoissonL1Config, Reconstructor};
+use super::param::{ParamInfo, Settings, Value};
+use super::{
+    FilterConfig, GradNetConfig, Method, MethodConfig, PoissonL1Config, Reconstructor, Register,
+};
 use crate::context::Context;
 use crate::error::Result;
 use crate::frame::Frame;
@@ -68,8 +71,61 @@ impl AutoConfig {
     }
 }
 
+/// `auto`'s parameters are those of the methods it chooses between, named `filter.radius`,
+/// `gradnet.tile_size`, `l1.alpha`, ...
+impl Settings for AutoConfig {
+    fn infos(prefix: &str) -> Vec<ParamInfo> {
+        let mut all = FilterConfig::infos(&format!("{prefix}filter."));
+        all.extend(GradNetConfig::infos(&format!("{prefix}gradnet.")));
+        all.extend(PoissonL1Config::infos(&format!("{prefix}l1.")));
+        all
+    }
+
+    fn read(&self, name: &str) -> Option<Value> {
+        match name.split_once('.')? {
+            ("filter", rest) => self.filter.read(rest),
+            ("gradnet", rest) => self.gradnet.read(rest),
+            ("l1", rest) => self.l1.read(rest),
+            _ => None,
+        }
+    }
+
+    fn write(&mut self, name: &str, value: Value) -> bool {
+        match name.split_once('.') {
+            Some(("filter", rest)) => self.filter.write(rest, value),
+            Some(("gradnet", rest)) => self.gradnet.write(rest, value),
+            Some(("l1", rest)) => self.l1.write(rest, value),
+            _ => false,
+        }
+    }
+
+    fn preset(_name: &str) -> Option<Self> {
+        None
+    }
+
+    fn presets() -> Vec<(String, &'static str)> {
+        Vec::new()
+    }
+}
+
+impl Register for AutoConfig {
+    fn plan(
+        &self,
+        context: &Context,
+        width: usize,
+        height: usize,
+    ) -> Result<Box<dyn Reconstructor>> {
+        super::param::validate(self)?;
+        Ok(Box::new(Auto::new(self.clone(), context, width, height)))
+    }
+
+    fn gradnet_mut(&mut self) -> Option<&mut GradNetConfig> {
+        Some(&mut self.gradnet)
+    }
+}
+
 /// The `auto` method planned for one size.
-pub struct Auto {
+pub(crate) struct Auto {
     config: AutoConfig,
     context: Context,
     width: usize,
@@ -81,7 +137,7 @@ pub struct Auto {
 
 impl Auto {
     /// Plans nothing yet: the choice depends on the frames.
-    pub fn new(config: AutoConfig, context: &Context, width: usize, height: usize) -> Self {
+    pub(crate) fn new(config: AutoConfig, context: &Context, width: usize, height: usize) -> Self {
         Auto {
             config,
             context: context.clone(),

@@ -1,18 +1,30 @@
 //! Reconstruction methods behind one plan/execute interface.
 //!
-//! Every method is one file implementing [`Reconstructor`]: its constructor builds everything
-//! reusable for one frame size (DCT plans, solver buffers, later the ONNX session), and
-//! [`Reconstructor::reconstruct_into`] runs without allocating. [`Method`] is the closed
-//! registry the CLI and the C ABI dispatch on; [`Plan`] is what callers hold: a method planned
-//! for a size, bound to a [`Context`]'s thread pool, with the output guard that keeps NaN and Inf
-//! out of every result.
+//! Every method is one file (or folder) implementing the crate's `Reconstructor` trait: its
+//! constructor builds everything reusable for one frame size (DCT plans, solver buffers, the
+//! ONNX session), and `reconstruct_into` runs per frame. Its configuration type declares its
+//! parameters once, in a table ([`param`]), and the method is registered once, in the
+//! `registry!` call below: that line generates [`Method`], [`MethodConfig`] and every dispatch,
+//! so the CLI, `bench`, the C API and the parameter listing see the new method with nothing
+//! else to edit. [`Plan`] is what callers hold: a method planned for a size, bound to a
+//! [`Context`]'s thread pool, with the checks and the output guard that keeps NaN and Inf out
+//! of every result. Callers cannot run a method around those checks: the trait is internal.
+//!
+//! To add a method `foo`: write `recon/foo.rs` with `FooConfig` (implementing `Params`, with
+//! its table, and `Register`, which plans it) and the planned type implementing
+//! `Reconstructor`, then add one line to `registry!`. The `testing` cargo feature registers
+//! `copy` (`recon/copy.rs`) exactly so, and `tests/registry.rs` finds it in the CLI, `bench`
+//! and the C API.
 
 pub mod auto;
 pub mod converged;
+#[cfg(feature = "testing")]
+pub mod copy;
 mod dct;
 pub mod filter;
 pub mod gradnet;
 mod ops;
+pub mod param;
 pub mod poisson_l1;
 pub mod poisson_l2;
 
@@ -21,14 +33,16 @@ use std::str::FromStr;
 
 use rayon::prelude::*;
 
-pub use auto::{Auto, AutoConfig};
-pub use filter::{Filter, FilterConfig, FilterGuide};
-#[cfg(feature = "gradnet")]
-pub use gradnet::GradNet;
+pub use auto::AutoConfig;
+#[cfg(feature = "testing")]
+pub use copy::CopyConfig;
+pub use filter::{FilterConfig, FilterGuide};
 pub use gradnet::GradNetConfig;
-pub use poisson_l1::{PoissonL1, PoissonL1Config};
-pub use poisson_l2::{PoissonL2, PoissonL2Config};
+pub use param::{Kind, ParamInfo, Range, Value};
+pub use poisson_l1::PoissonL1Config;
+pub use poisson_l2::PoissonL2Config;
 
+use self::param::Settings;
 use crate::context::Context;
 use crate::error::{Error, Result};
 use crate::frame::Frame;
@@ -36,8 +50,9 @@ use crate::image::Image;
 use crate::progress::Progress;
 use crate::report::Report;
 
-/// A reconstruction method planned for one frame size.
-pub trait Reconstructor: Send {
+/// A reconstruction method planned for one frame size. Internal: callers hold a [`Plan`],
+/// which checks sizes, runs on the context's pool and repairs non-finite output.
+pub(crate) trait Reconstructor: Send {
     /// Which method this is.
     fn method(&self) -> Method;
 
@@ -52,42 +67,178 @@ pub trait Reconstructor: Send {
     ) -> Result<()>;
 }
 
-/// The methods gdrecon offers.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-#[non_exhaustive]
-pub enum Method {
-    /// Screened Poisson, L2, solved exactly by the DCT (`l2`).
-    PoissonL2,
-    /// Screened Poisson, group L1, by IRLS with preconditioned CG (`l1`).
-    PoissonL1,
-    /// Gradient-guided filtering, FRGR (Yan et al. 2024) (`filter`).
-    Filter,
-    /// GradNet (Guo et al. 2019) through ONNX Runtime (`gradnet`); needs the `gradnet` cargo
-    /// feature and the runtime library at run time.
-    GradNet,
-    /// Picks one of the others per frame from its spp and layers, and says why (`auto`).
-    Auto,
+/// What a method's configuration type provides to be registered (besides its parameter
+/// table, [`param::Params`]).
+pub(crate) trait Register: Settings + Clone {
+    /// The variants `gdrecon bench --sweep` times: the options after `method:`, `""` being the
+    /// defaults (`"reweight_steps=5"`, `"published"`).
+    const SWEEP: &'static [&'static str] = &[""];
+
+    /// Plans the method for `width` x `height` frames (sizes already checked non-zero),
+    /// checking the settings first.
+    fn plan(
+        &self,
+        context: &Context,
+        width: usize,
+        height: usize,
+    ) -> Result<Box<dyn Reconstructor>>;
+
+    /// The GradNet settings this configuration runs with, if it can run GradNet: where the
+    /// runtime library and model paths go.
+    fn gradnet_mut(&mut self) -> Option<&mut GradNetConfig> {
+        None
+    }
 }
 
-impl Method {
-    /// Every method, in the order the CLI lists them.
-    pub const ALL: [Method; 5] = [
-        Method::PoissonL2,
-        Method::PoissonL1,
-        Method::Filter,
-        Method::GradNet,
-        Method::Auto,
-    ];
-
-    /// The CLI / C ABI name.
-    pub fn name(self) -> &'static str {
-        match self {
-            Method::PoissonL2 => "l2",
-            Method::PoissonL1 => "l1",
-            Method::Filter => "filter",
-            Method::GradNet => "gradnet",
-            Method::Auto => "auto",
+/// Declares the methods: one line each, `Variant(ConfigType) = "name", "summary";`, optionally
+/// behind a `#[cfg(...)]`. Generates [`Method`], [`MethodConfig`] and their dispatch.
+macro_rules! registry {
+    ($( $(#[cfg($cfg:meta)])? $variant:ident($config:ty) = $name:literal, $summary:literal; )*) => {
+        /// The methods gdrecon offers (the CLI and C name in brackets).
+        #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+        #[non_exhaustive]
+        pub enum Method {
+            $( $(#[cfg($cfg)])? #[doc = concat!($summary, " (`", $name, "`).")] $variant, )*
         }
+
+        /// How many methods this build has.
+        const COUNT: usize = {
+            let mut n = 0;
+            $( $(#[cfg($cfg)])? { n += 1; } )*
+            n
+        };
+
+        impl Method {
+            /// Every method, in the order they are listed.
+            pub const ALL: [Method; COUNT] = {
+                let mut all = [Method::PoissonL2; COUNT];
+                let mut i = 0;
+                $( $(#[cfg($cfg)])? { all[i] = Method::$variant; i += 1; } )*
+                assert!(i == COUNT);
+                all
+            };
+
+            /// The CLI / C ABI name.
+            pub fn name(self) -> &'static str {
+                match self { $( $(#[cfg($cfg)])? Method::$variant => $name, )* }
+            }
+
+            /// One line: what the method does.
+            pub fn summary(self) -> &'static str {
+                match self { $( $(#[cfg($cfg)])? Method::$variant => $summary, )* }
+            }
+
+            /// The method's parameters with their types, ranges and defaults.
+            pub fn params(self) -> Vec<ParamInfo> {
+                match self { $( $(#[cfg($cfg)])? Method::$variant => <$config>::infos(""), )* }
+            }
+
+            /// The method's presets: `(name, what it sets)`.
+            pub fn presets(self) -> Vec<(String, &'static str)> {
+                match self { $( $(#[cfg($cfg)])? Method::$variant => <$config>::presets(), )* }
+            }
+
+            /// The variants `gdrecon bench --sweep` times: options after `method:` (`""`:
+            /// the defaults).
+            pub fn sweep(self) -> &'static [&'static str] {
+                match self {
+                    $( $(#[cfg($cfg)])? Method::$variant => <$config as Register>::SWEEP, )*
+                }
+            }
+        }
+
+        /// A method with its settings.
+        #[derive(Clone, Debug, PartialEq)]
+        #[non_exhaustive]
+        pub enum MethodConfig {
+            $( $(#[cfg($cfg)])? #[doc = concat!("See [`", stringify!($config), "`].")] $variant($config), )*
+        }
+
+        impl MethodConfig {
+            /// The method's default settings.
+            pub fn default_for(method: Method) -> Self {
+                match method {
+                    $( $(#[cfg($cfg)])? Method::$variant => MethodConfig::$variant(Default::default()), )*
+                }
+            }
+
+            /// Which method this configures.
+            pub fn method(&self) -> Method {
+                match self { $( $(#[cfg($cfg)])? MethodConfig::$variant(_) => Method::$variant, )* }
+            }
+
+            /// The preset `name` of `method` (see [`Method::presets`]).
+            pub fn preset(method: Method, name: &str) -> Result<Self> {
+                let found = match method {
+                    $( $(#[cfg($cfg)])? Method::$variant => <$config>::preset(name).map(MethodConfig::$variant), )*
+                };
+                found.ok_or_else(|| {
+                    let names: Vec<String> = method.presets().into_iter().map(|(n, _)| n).collect();
+                    Error::arg(format!(
+                        "unknown preset '{name}' for method '{method}', {}",
+                        if names.is_empty() { "it has none".to_owned() } else { format!("expected one of: {}", names.join(", ")) }
+                    ))
+                })
+            }
+
+            fn read(&self, name: &str) -> Option<Value> {
+                match self { $( $(#[cfg($cfg)])? MethodConfig::$variant(c) => c.read(name), )* }
+            }
+
+            fn write(&mut self, name: &str, value: Value) -> bool {
+                match self { $( $(#[cfg($cfg)])? MethodConfig::$variant(c) => c.write(name, value), )* }
+            }
+
+            fn register(&mut self) -> &mut dyn RegisterDyn {
+                match self { $( $(#[cfg($cfg)])? MethodConfig::$variant(c) => c, )* }
+            }
+
+            fn register_ref(&self) -> &dyn RegisterDyn {
+                match self { $( $(#[cfg($cfg)])? MethodConfig::$variant(c) => c, )* }
+            }
+        }
+    };
+}
+
+registry! {
+    PoissonL2(PoissonL2Config) = "l2",
+        "Screened Poisson, L2, solved exactly by two 2-D DCTs";
+    PoissonL1(PoissonL1Config) = "l1",
+        "Screened Poisson, group L1, by IRLS with DCT-preconditioned CG";
+    Filter(FilterConfig) = "filter",
+        "Gradient-guided filtering, FRGR (Yan et al. 2024); needs the frame's spp";
+    GradNet(GradNetConfig) = "gradnet",
+        "GradNet (Guo et al. 2019) through ONNX Runtime, loaded at run time";
+    Auto(AutoConfig) = "auto",
+        "Picks filter, gradnet or l1 per frame from its spp and layers, and says why";
+    #[cfg(feature = "testing")]
+    Copy(CopyConfig) = "copy",
+        "Test-only: the base image scaled by a gain (shows how a method is registered)";
+}
+
+/// [`Register`]'s object-safe part, so [`MethodConfig`] dispatches once.
+trait RegisterDyn {
+    fn plan_dyn(
+        &self,
+        context: &Context,
+        width: usize,
+        height: usize,
+    ) -> Result<Box<dyn Reconstructor>>;
+    fn gradnet_dyn(&mut self) -> Option<&mut GradNetConfig>;
+}
+
+impl<C: Register> RegisterDyn for C {
+    fn plan_dyn(
+        &self,
+        context: &Context,
+        width: usize,
+        height: usize,
+    ) -> Result<Box<dyn Reconstructor>> {
+        self.plan(context, width, height)
+    }
+
+    fn gradnet_dyn(&mut self) -> Option<&mut GradNetConfig> {
+        self.gradnet_mut()
     }
 }
 
@@ -112,56 +263,55 @@ impl FromStr for Method {
     }
 }
 
-/// A method with its settings.
-#[derive(Clone, Debug, PartialEq)]
-#[non_exhaustive]
-pub enum MethodConfig {
-    /// See [`PoissonL2Config`].
-    PoissonL2(PoissonL2Config),
-    /// See [`PoissonL1Config`].
-    PoissonL1(PoissonL1Config),
-    /// See [`FilterConfig`].
-    Filter(FilterConfig),
-    /// See [`GradNetConfig`].
-    GradNet(GradNetConfig),
-    /// See [`AutoConfig`].
-    Auto(AutoConfig),
-}
-
 impl MethodConfig {
-    /// The method's default settings.
-    pub fn default_for(method: Method) -> Self {
-        match method {
-            Method::PoissonL2 => MethodConfig::PoissonL2(PoissonL2Config::default()),
-            Method::PoissonL1 => MethodConfig::PoissonL1(PoissonL1Config::default()),
-            Method::Filter => MethodConfig::Filter(FilterConfig::default()),
-            Method::GradNet => MethodConfig::GradNet(GradNetConfig::default()),
-            Method::Auto => MethodConfig::Auto(AutoConfig::default()),
+    /// The description of parameter `name` of this method.
+    pub fn param(&self, name: &str) -> Result<ParamInfo> {
+        let method = self.method();
+        let infos = method.params();
+        match infos.iter().find(|i| i.name == name) {
+            Some(info) => Ok(info.clone()),
+            None => Err(param::unknown(method.name(), name, &infos)),
         }
     }
 
-    /// Which method this configures.
-    pub fn method(&self) -> Method {
-        match self {
-            MethodConfig::PoissonL2(_) => Method::PoissonL2,
-            MethodConfig::PoissonL1(_) => Method::PoissonL1,
-            MethodConfig::Filter(_) => Method::Filter,
-            MethodConfig::GradNet(_) => Method::GradNet,
-            MethodConfig::Auto(_) => Method::Auto,
+    /// The value of parameter `name` (a choice as its index).
+    pub fn get(&self, name: &str) -> Result<Value> {
+        let info = self.param(name)?;
+        Ok(self
+            .read(&info.name)
+            .expect("listed parameters can be read"))
+    }
+
+    /// Sets parameter `name`, checking its type and range against the method's table.
+    pub fn set(&mut self, name: &str, value: Value) -> Result<()> {
+        let info = self.param(name)?;
+        let value = info.check(value)?;
+        let written = self.write(&info.name, value);
+        debug_assert!(written, "listed parameters can be written");
+        Ok(())
+    }
+
+    /// Sets parameter `name` from text (`"0.3"`, `"true"`, a choice's name), as the CLI's
+    /// `--param name=value` and bench variants do.
+    pub fn set_text(&mut self, name: &str, text: &str) -> Result<()> {
+        let value = self.param(name)?.parse(text)?;
+        self.set(name, value)
+    }
+
+    /// Sets `name=value` (the form `--param` takes).
+    pub fn set_assignment(&mut self, assignment: &str) -> Result<()> {
+        match assignment.split_once('=') {
+            Some((name, value)) => self.set_text(name.trim(), value),
+            None => Err(Error::arg(format!(
+                "parameter '{assignment}' has no value: write NAME=VALUE"
+            ))),
         }
     }
 
-    /// Sets the screened Poisson weight, for the methods that have one.
-    pub fn with_alpha(mut self, alpha: f32) -> Self {
-        match &mut self {
-            MethodConfig::PoissonL2(c) => c.alpha = alpha,
-            MethodConfig::PoissonL1(c) => c.alpha = alpha,
-            MethodConfig::Auto(c) => {
-                c.l1.alpha = alpha;
-            }
-            MethodConfig::Filter(_) | MethodConfig::GradNet(_) => {}
-        }
-        self
+    /// The GradNet settings this configuration uses (`gradnet`, and `auto`'s), to set the
+    /// runtime library and model paths; `None` for methods that never run GradNet.
+    pub fn gradnet_mut(&mut self) -> Option<&mut GradNetConfig> {
+        self.register().gradnet_dyn()
     }
 
     pub(crate) fn instantiate(
@@ -170,21 +320,7 @@ impl MethodConfig {
         width: usize,
         height: usize,
     ) -> Result<Box<dyn Reconstructor>> {
-        Ok(match self {
-            MethodConfig::PoissonL2(c) => Box::new(PoissonL2::new(*c, width, height)?),
-            MethodConfig::PoissonL1(c) => Box::new(PoissonL1::new(*c, width, height)?),
-            MethodConfig::Filter(c) => Box::new(Filter::new(*c, width, height)?),
-            #[cfg(feature = "gradnet")]
-            MethodConfig::GradNet(c) => Box::new(GradNet::new(c.clone(), context, width, height)?),
-            MethodConfig::Auto(c) => Box::new(Auto::new(c.clone(), context, width, height)),
-            #[cfg(not(feature = "gradnet"))]
-            MethodConfig::GradNet(_) => {
-                let _ = context;
-                return Err(Error::Unsupported(
-                    "this build of gdrecon has no GradNet (cargo feature `gradnet` is off)".into(),
-                ));
-            }
-        })
+        self.register_ref().plan_dyn(context, width, height)
     }
 }
 

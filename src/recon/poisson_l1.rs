@@ -22,36 +22,37 @@ use rayon::prelude::*;
 
 use super::dct::DctPoisson;
 use super::ops::{apply_weighted_dot, plane_sums, Dims, RowWeights};
-use super::poisson_l2::check_alpha;
-use super::{Method, Reconstructor};
-use crate::error::{Error, Result};
+use super::param::{self, Param, Params, Preset, Range};
+use super::poisson_l2::{ALPHA_RANGE, DEFAULT_ALPHA};
+use super::{Method, Reconstructor, Register};
+use crate::context::Context;
+use crate::error::Result;
 use crate::frame::Frame;
 use crate::image::Image;
 use crate::progress::Progress;
 use crate::report::{Report, Stage};
 
-/// Settings of the L1 (IRLS) screened Poisson solve.
+/// Settings of the L1 (IRLS) screened Poisson solve; names, defaults and ranges are in its
+/// parameter table below (listed in `docs/PARAMETERS.md`).
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[non_exhaustive]
 pub struct PoissonL1Config {
-    /// Weight of the data term, as in L2; must be positive. Default 0.2.
+    /// Weight of the data term, as in L2.
     pub alpha: f32,
-    /// IRLS steps, the first with unit weights. Default 20.
+    /// IRLS steps, the first with unit weights.
     pub reweight_steps: u32,
-    /// Maximum CG iterations per step. Default 8.
+    /// Maximum CG iterations per step.
     pub cg_iterations: u32,
-    /// Stop CG when every channel's residual norm falls below this fraction of its
-    /// right-hand side's norm; 0 runs all `cg_iterations`. Default 1e-2: on the validation
-    /// set (18 frames, 4-64 spp) it gave lower relMSE than 1e-3 (truncated IRLS regularises)
-    /// at 2.4x less time.
+    /// Relative CG residual at which a step stops; 0 runs all `cg_iterations`.
     pub cg_tolerance: f32,
-    /// Precondition CG with the exact L2 (DCT) solve. Default true.
+    /// Precondition CG with the exact L2 (DCT) solve.
     pub preconditioned: bool,
 }
 
 impl Default for PoissonL1Config {
     fn default() -> Self {
         PoissonL1Config {
-            alpha: 0.2,
+            alpha: DEFAULT_ALPHA,
             reweight_steps: 20,
             cg_iterations: 8,
             cg_tolerance: 1e-2,
@@ -65,40 +66,91 @@ impl PoissonL1Config {
     /// 20 reweighting steps x 50 unpreconditioned CG iterations, no early stop.
     pub fn published() -> Self {
         PoissonL1Config {
-            alpha: 0.2,
+            alpha: DEFAULT_ALPHA,
             reweight_steps: 20,
             cg_iterations: 50,
             cg_tolerance: 0.0,
             preconditioned: false,
         }
     }
+}
 
-    pub(crate) fn validate(&self) -> Result<()> {
-        check_alpha(self.alpha, true)?;
-        if self.reweight_steps == 0 || self.reweight_steps > 1000 {
-            return Err(Error::arg(format!(
-                "reweight_steps is {}, expected 1 to 1000",
-                self.reweight_steps
-            )));
-        }
-        if self.cg_iterations == 0 || self.cg_iterations > 100_000 {
-            return Err(Error::arg(format!(
-                "cg_iterations is {}, expected 1 to 100000",
-                self.cg_iterations
-            )));
-        }
-        if !(self.cg_tolerance.is_finite() && (0.0..1.0).contains(&self.cg_tolerance)) {
-            return Err(Error::arg(format!(
-                "cg_tolerance is {}, expected a value in [0, 1)",
-                self.cg_tolerance
-            )));
-        }
-        Ok(())
+impl Params for PoissonL1Config {
+    const TABLE: &'static [Param<Self>] = &[
+        Param::float(
+            "alpha",
+            Range {
+                min_open: true,
+                ..ALPHA_RANGE
+            },
+            "Weight of the data term: residual rows are alpha (I - I_b)",
+            |c| c.alpha,
+            |c, v| c.alpha = v,
+        ),
+        Param::int(
+            "reweight_steps",
+            1,
+            1000,
+            "IRLS steps, the first with unit weights",
+            |c| c.reweight_steps.into(),
+            |c, v| c.reweight_steps = v as u32,
+        ),
+        Param::int(
+            "cg_iterations",
+            1,
+            100_000,
+            "Maximum conjugate-gradient iterations per IRLS step",
+            |c| c.cg_iterations.into(),
+            |c, v| c.cg_iterations = v as u32,
+        ),
+        // Why 1e-2: on the validation set (18 frames, 4-64 spp) it gave lower relMSE than 1e-3
+        // (truncated IRLS regularises) at 2.4x less time.
+        Param::float(
+            "cg_tolerance",
+            Range::below(0.0, 1.0),
+            "Stop a step's CG when every channel's residual norm is below this fraction of its \
+             right-hand side's; 0 runs every iteration",
+            |c| c.cg_tolerance,
+            |c, v| c.cg_tolerance = v,
+        ),
+        Param::bool(
+            "preconditioned",
+            "Precondition CG with the exact L2 (DCT) solve",
+            |c| c.preconditioned,
+            |c, v| c.preconditioned = v,
+        ),
+    ];
+
+    const PRESETS: &'static [Preset<Self>] = &[
+        Preset {
+            name: "fast",
+            doc: "the defaults: preconditioned CG stopped at a relative residual of 1e-2",
+            config: PoissonL1Config::default,
+        },
+        Preset {
+            name: "published",
+            doc:
+                "the reference solver's schedule: 20 steps x 50 plain CG iterations, no early stop",
+            config: PoissonL1Config::published,
+        },
+    ];
+}
+
+impl Register for PoissonL1Config {
+    const SWEEP: &'static [&'static str] = &["", "reweight_steps=5", "published"];
+
+    fn plan(
+        &self,
+        _context: &Context,
+        width: usize,
+        height: usize,
+    ) -> Result<Box<dyn Reconstructor>> {
+        Ok(Box::new(PoissonL1::new(*self, width, height)?))
     }
 }
 
 /// A planned L1 solve for one size; all buffers are allocated here and reused.
-pub struct PoissonL1 {
+pub(crate) struct PoissonL1 {
     dims: Dims,
     cfg: PoissonL1Config,
     precond: Option<DctPoisson>,
@@ -127,8 +179,8 @@ struct CgOutcome {
 
 impl PoissonL1 {
     /// Plans the solve for `width` x `height` frames.
-    pub fn new(config: PoissonL1Config, width: usize, height: usize) -> Result<Self> {
-        config.validate()?;
+    pub(crate) fn new(config: PoissonL1Config, width: usize, height: usize) -> Result<Self> {
+        param::validate(&config)?;
         let dims = Dims {
             w: width,
             h: height,

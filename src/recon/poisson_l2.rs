@@ -8,48 +8,62 @@
 
 use super::dct::DctPoisson;
 use super::ops::{grad_adjoint, Dims};
-use super::{Method, Reconstructor};
-use crate::error::{Error, Result};
+use super::param::{self, Param, Params, Range};
+use super::{Method, Reconstructor, Register};
+use crate::context::Context;
+use crate::error::Result;
 use crate::frame::Frame;
 use crate::image::Image;
 use crate::progress::Progress;
 use crate::report::Report;
 
-/// Settings of the L2 screened Poisson solve.
+/// Settings of the L2 screened Poisson solve; its parameters are declared in its table
+/// ([`param`](super::param)), the one place their names, ranges and meanings are written.
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[non_exhaustive]
 pub struct PoissonL2Config {
-    /// Weight of the data term: residual rows are `alpha (I - I_b)`. 0 means pure Poisson with
-    /// the mean of `I_b`. Default 0.2.
+    /// Weight of the data term (see the table).
     pub alpha: f32,
 }
 
 impl Default for PoissonL2Config {
     fn default() -> Self {
-        PoissonL2Config { alpha: 0.2 }
+        PoissonL2Config {
+            alpha: DEFAULT_ALPHA,
+        }
     }
 }
 
-impl PoissonL2Config {
-    pub(crate) fn validate(&self) -> Result<()> {
-        check_alpha(self.alpha, false)
-    }
+/// Gradient-domain path tracing's data weight.
+pub(crate) const DEFAULT_ALPHA: f32 = 0.2;
+
+/// The accepted `alpha` for L2 (0 is pure Poisson) and, open at 0, for L1.
+pub(crate) const ALPHA_RANGE: Range = Range::closed(0.0, 1e4);
+
+impl Params for PoissonL2Config {
+    const TABLE: &'static [Param<Self>] = &[Param::float(
+        "alpha",
+        ALPHA_RANGE,
+        "Weight of the data term: residual rows are alpha (I - I_b); 0 is pure Poisson with \
+         the base image's mean",
+        |c| c.alpha,
+        |c, v| c.alpha = v,
+    )];
 }
 
-/// Checks `alpha` is finite, at most 1e4, and at least 0 (or, with `positive`, above 0).
-pub(crate) fn check_alpha(alpha: f32, positive: bool) -> Result<()> {
-    let in_range = (0.0..=1e4).contains(&alpha) && !(positive && alpha == 0.0);
-    if in_range {
-        Ok(())
-    } else {
-        Err(Error::arg(format!(
-            "alpha is {alpha}, expected a finite value in {} 1e4]",
-            if positive { "(0," } else { "[0," }
-        )))
+impl Register for PoissonL2Config {
+    fn plan(
+        &self,
+        _context: &Context,
+        width: usize,
+        height: usize,
+    ) -> Result<Box<dyn Reconstructor>> {
+        Ok(Box::new(PoissonL2::new(*self, width, height)?))
     }
 }
 
 /// A planned L2 solve for one size.
-pub struct PoissonL2 {
+pub(crate) struct PoissonL2 {
     dims: Dims,
     alpha: f32,
     solver: DctPoisson,
@@ -58,8 +72,8 @@ pub struct PoissonL2 {
 
 impl PoissonL2 {
     /// Plans the solve for `width` x `height` frames.
-    pub fn new(config: PoissonL2Config, width: usize, height: usize) -> Result<Self> {
-        config.validate()?;
+    pub(crate) fn new(config: PoissonL2Config, width: usize, height: usize) -> Result<Self> {
+        param::validate(&config)?;
         let dims = Dims {
             w: width,
             h: height,

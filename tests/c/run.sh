@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The C API's tests, from C and C++ against the installed header and libraries:
-# 1. build the release library and install it into a temporary prefix (packaging/install.sh);
+# 1. build the release library with the `testing` feature (the deliberate panic the C test
+#    needs) and install it into a temporary prefix (packaging/install.sh);
 # 2. check that the shared library exports only gdr_ symbols and has its soname;
 # 3. write the Rust API's reference outputs (tests/capi.rs, write_reference_for_c);
 # 4. compile tests/c/test_capi.c as C99 and as C++ (-Wall -Wextra -Werror -pedantic), found
@@ -82,8 +83,8 @@ if [ "${#missing[@]}" -gt 0 ]; then
     apt-get update -qq >/dev/null && apt-get install -y -qq "${pkgs[@]}" >/dev/null
 fi
 
-step "build the release library"
-cargo build --release --locked --lib
+step "build the release library (with the test hooks: internal_test_panic, the copy method)"
+cargo build --release --locked --lib --features testing
 bash packaging/install.sh "$prefix"
 export PKG_CONFIG_PATH="$prefix/lib/pkgconfig"
 

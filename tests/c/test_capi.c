@@ -133,6 +133,53 @@ static void test_version(void) {
     CHECK(strcmp(gdr_error_name(9999), "GDR_ERROR_?") == 0);
 }
 
+/* Every method's parameters, listed and set from C as a generic settings UI would. */
+static void test_param_listing(gdr_context* ctx) {
+    gdr_param_info info;
+    size_t count = 0, k;
+    uint32_t m;
+    int saw_guide = 0;
+    for (m = 0; gdr_method_name(m) != NULL; m++) {
+        const char* method = gdr_method_name(m);
+        gdr_filter* f = NULL;
+        OK(gdr_method_param_count(method, &count));
+        CHECK(count >= 2);
+        OK(gdr_filter_new(ctx, method, &f));
+        for (k = 0; k < count; k++) {
+            OK(gdr_method_param(method, k, &info));
+            CHECK(info.name != NULL && info.name[0] != '\0' && info.doc[0] != '\0');
+            CHECK(info.min <= info.default_value && info.default_value <= info.max);
+            if (info.kind == GDR_PARAM_CHOICE) {
+                CHECK(info.choices[0] != '\0');
+                if (strcmp(info.name, "guide") == 0) {
+                    saw_guide = 1;
+                    CHECK(strcmp(info.choices, "rdfc,l1,none") == 0);
+                }
+            }
+            switch (info.kind) {
+            case GDR_PARAM_FLOAT:
+                OK(gdr_filter_set_float(f, info.name, (float)info.default_value));
+                break;
+            case GDR_PARAM_CHOICE: /* set by its index */
+            case GDR_PARAM_INT:
+                OK(gdr_filter_set_int(f, info.name, (int32_t)info.default_value));
+                EXPECT(gdr_filter_set_int(f, info.name, (int32_t)info.max + 1),
+                       GDR_ERROR_INVALID_ARGUMENT);
+                break;
+            case GDR_PARAM_BOOL:
+                OK(gdr_filter_set_bool(f, info.name, info.default_value != 0.0));
+                break;
+            default:
+                CHECK(!"unknown parameter kind");
+            }
+        }
+        EXPECT(gdr_method_param(method, count, &info), GDR_ERROR_INVALID_ARGUMENT);
+        OK(gdr_filter_release(&f));
+    }
+    CHECK(saw_guide);
+    EXPECT(gdr_method_param_count("nope", &count), GDR_ERROR_INVALID_ARGUMENT);
+}
+
 /* Packed inputs, each method, against the Rust API's output. */
 static void test_bit_for_bit(gdr_context* ctx, const char* dir) {
     const char* methods[3] = {"l2", "l1", "l1"};
@@ -624,6 +671,7 @@ int main(int argc, char** argv) {
     test_bit_for_bit(ctx, argv[1]);
     test_layouts(ctx, argv[1]);
     test_errors(ctx);
+    test_param_listing(ctx);
     test_cancellation(ctx);
     OK(gdr_context_release(&ctx));
     if (argc > 2) test_frame_and_log(argv[2]);

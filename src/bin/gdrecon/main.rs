@@ -18,11 +18,9 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
-use clap::{Args, Parser, Subcommand, ValueEnum};
+use clap::{Args, Parser, Subcommand};
 
-use gdrecon::recon::{
-    AutoConfig, FilterConfig, FilterGuide, GradNetConfig, PoissonL1Config, PoissonL2Config,
-};
+use gdrecon::recon::param::ParamInfo;
 use gdrecon::{
     io, metrics, synth, Context, ContextOptions, Frame, Layer, Method, MethodConfig, Plan, Policy,
 };
@@ -75,65 +73,19 @@ enum Command {
     },
     /// Time methods on frames: median of several runs, relMSE when a reference is present.
     Bench(bench::BenchArgs),
+    /// List the methods' parameters: name, type, default, accepted values, meaning.
+    Params {
+        /// Only this method.
+        method: Option<String>,
+        /// Print the Markdown of docs/PARAMETERS.md.
+        #[arg(long)]
+        markdown: bool,
+    },
 }
 
-#[derive(Clone, Copy, Debug, ValueEnum)]
-enum GuideArg {
-    /// RDFC's first pass (the authors' release).
-    Rdfc,
-    /// Screened Poisson L1.
-    L1,
-    /// None: the noisy colour (the pre-denoiser's ablation).
-    None,
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-enum L1Preset {
-    /// Preconditioned CG with early stopping (the default).
-    Fast,
-    /// Gradient-domain path tracing's schedule: 20 steps x 50 plain CG iterations.
-    Published,
-}
-
-/// Method selection and settings shared by `reconstruct` and `bench`.
+/// Where GradNet's runtime and model come from (shared by `reconstruct` and `bench`).
 #[derive(Args, Clone, Debug)]
-pub(crate) struct MethodArgs {
-    /// Reconstruction method: l2, l1, filter, gradnet or auto (the filter needs spp: from the
-    /// file or --spp; gradnet needs ONNX Runtime, see --onnxruntime; auto picks one per frame
-    /// and prints why).
-    #[arg(long, short, default_value = "l2")]
-    method: String,
-    /// Screened Poisson data weight (residual alpha (I - I_b)).
-    #[arg(long, default_value_t = 0.2)]
-    alpha: f32,
-    /// L1 schedule preset.
-    #[arg(long, value_enum, default_value = "fast")]
-    l1_preset: L1Preset,
-    /// L1: IRLS reweighting steps (overrides the preset).
-    #[arg(long)]
-    irls_steps: Option<u32>,
-    /// L1: maximum CG iterations per step (overrides the preset).
-    #[arg(long)]
-    cg_iterations: Option<u32>,
-    /// L1: relative CG tolerance, 0 runs every iteration (overrides the preset).
-    #[arg(long)]
-    cg_tolerance: Option<f32>,
-    /// filter: the pre-denoised guide image.
-    #[arg(long, value_enum, default_value = "rdfc")]
-    filter_guide: GuideArg,
-    /// filter: window radius (3 or 4).
-    #[arg(long, default_value_t = 4)]
-    filter_radius: usize,
-    /// filter: resolution levels (1 to 4).
-    #[arg(long, default_value_t = FilterConfig::default().levels)]
-    filter_levels: usize,
-    /// filter: gradient-enhancement iterations (1000: the release's reference mode; 0: no
-    /// enhancement, the ablation).
-    #[arg(long, default_value_t = FilterConfig::default().enhance_iterations)]
-    filter_enhance_iterations: u32,
-    /// filter: skip the feature prefilter (its ablation).
-    #[arg(long)]
-    filter_no_prefilter: bool,
+pub(crate) struct RuntimeArgs {
     /// gradnet: ONNX Runtime library to load first (then ORT_DYLIB_PATH, a library next to
     /// gdrecon, the project's Python environment).
     #[arg(long)]
@@ -141,70 +93,49 @@ pub(crate) struct MethodArgs {
     /// gradnet: model file instead of the embedded models (checked against its .sha256).
     #[arg(long)]
     model: Option<PathBuf>,
-    /// gradnet: largest tile side in pixels, 0 = never tile.
-    #[arg(long, default_value_t = gdrecon::recon::gradnet::DEFAULT_TILE)]
-    tile: usize,
-    /// gradnet: skip the Gaussian bias correction.
+}
+
+impl RuntimeArgs {
+    /// Points the configuration's GradNet settings (if it has any) at the runtime and model.
+    pub(crate) fn apply(&self, config: &mut MethodConfig) {
+        if let Some(c) = config.gradnet_mut() {
+            c.runtime = self.onnxruntime.clone();
+            c.model = self.model.clone();
+        }
+    }
+}
+
+/// Method selection and settings of `reconstruct`.
+#[derive(Args, Clone, Debug)]
+pub(crate) struct MethodArgs {
+    /// Reconstruction method: l2, l1, filter, gradnet or auto (`gdrecon params` lists each
+    /// one; the filter needs spp, from the file or --spp; gradnet needs ONNX Runtime).
+    #[arg(long, short, default_value = "l2")]
+    method: String,
+    /// Start from one of the method's presets (`gdrecon params METHOD` lists them), e.g.
+    /// `published` for l1; --param settings apply on top.
     #[arg(long)]
-    no_bias_correction: bool,
-    /// gradnet: ignore the frame's features (run the no-feature model).
-    #[arg(long)]
-    no_features: bool,
+    preset: Option<String>,
+    /// Set a parameter of the method, NAME=VALUE; repeat for several (`gdrecon params
+    /// METHOD` lists names, types, ranges and defaults), e.g. `-p alpha=0.3 -p reweight_steps=5`.
+    #[arg(long = "param", short = 'p', value_name = "NAME=VALUE")]
+    params: Vec<String>,
+    #[command(flatten)]
+    runtime: RuntimeArgs,
 }
 
 impl MethodArgs {
     pub(crate) fn config(&self) -> gdrecon::Result<MethodConfig> {
         let method: Method = self.method.parse()?;
-        Ok(match method {
-            Method::PoissonL2 => MethodConfig::PoissonL2(PoissonL2Config { alpha: self.alpha }),
-            Method::PoissonL1 => MethodConfig::PoissonL1(self.l1()),
-            Method::Filter => MethodConfig::Filter(self.filter()),
-            Method::GradNet => MethodConfig::GradNet(self.gradnet()),
-            Method::Auto => {
-                let mut c = AutoConfig::default();
-                c.filter = self.filter();
-                c.gradnet = self.gradnet();
-                c.l1 = self.l1();
-                MethodConfig::Auto(c)
-            }
-            other => MethodConfig::default_for(other).with_alpha(self.alpha),
-        })
-    }
-
-    fn l1(&self) -> PoissonL1Config {
-        let mut c = match self.l1_preset {
-            L1Preset::Fast => PoissonL1Config::default(),
-            L1Preset::Published => PoissonL1Config::published(),
+        let mut config = match &self.preset {
+            Some(name) => MethodConfig::preset(method, name)?,
+            None => MethodConfig::default_for(method),
         };
-        c.alpha = self.alpha;
-        c.reweight_steps = self.irls_steps.unwrap_or(c.reweight_steps);
-        c.cg_iterations = self.cg_iterations.unwrap_or(c.cg_iterations);
-        c.cg_tolerance = self.cg_tolerance.unwrap_or(c.cg_tolerance);
-        c
-    }
-
-    fn filter(&self) -> FilterConfig {
-        FilterConfig {
-            radius: self.filter_radius,
-            levels: self.filter_levels,
-            enhance_iterations: self.filter_enhance_iterations,
-            guide: match self.filter_guide {
-                GuideArg::Rdfc => FilterGuide::Rdfc,
-                GuideArg::L1 => FilterGuide::PoissonL1,
-                GuideArg::None => FilterGuide::Colour,
-            },
-            prefilter: !self.filter_no_prefilter,
+        for assignment in &self.params {
+            config.set_assignment(assignment)?;
         }
-    }
-
-    fn gradnet(&self) -> GradNetConfig {
-        let mut c = GradNetConfig::default();
-        c.runtime = self.onnxruntime.clone();
-        c.model = self.model.clone();
-        c.tile_size = self.tile;
-        c.bias_correction = !self.no_bias_correction;
-        c.use_features = !self.no_features;
-        c
+        self.runtime.apply(&mut config);
+        Ok(config)
     }
 }
 
@@ -251,6 +182,7 @@ fn main() -> ExitCode {
             seed,
         } => demo(&output, width, height, spp, seed),
         Command::Bench(args) => bench::run(args),
+        Command::Params { method, markdown } => params(method.as_deref(), markdown),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -280,9 +212,7 @@ fn reconstruct(args: ReconstructArgs) -> gdrecon::Result<()> {
     let frame = load_frame(&args.input, policy, args.spp)?;
     let read_time = t0.elapsed();
     let config = args.method.config()?;
-    let context = Context::new(ContextOptions {
-        threads: args.threads,
-    })?;
+    let context = Context::new(ContextOptions::with_threads(args.threads))?;
     let mut plan = Plan::new(&context, &config, frame.width(), frame.height())?;
     let bar = bar::DelayedBar::new(args.quiet);
     let callback = |f: f64| bar.update(f);
@@ -363,4 +293,75 @@ fn demo(output: &Path, width: usize, height: usize, spp: f32, seed: u64) -> gdre
         output.display()
     );
     Ok(())
+}
+
+fn params(method: Option<&str>, markdown: bool) -> gdrecon::Result<()> {
+    let methods = match method {
+        Some(m) => vec![m.parse::<Method>()?],
+        None => Method::ALL.to_vec(),
+    };
+    if markdown {
+        say!("{}", params_markdown(&methods).trim_end());
+        return Ok(());
+    }
+    for m in methods {
+        say!("{m}: {}", m.summary());
+        for p in m.params() {
+            say!(
+                "  {:<28} {:<6} default {:<8} {}",
+                p.name,
+                p.kind.name(),
+                p.format(p.default),
+                p.accepts()
+            );
+            say!("  {:<28} {}", "", p.doc);
+        }
+        for (name, doc) in m.presets() {
+            say!("  preset {name}: {doc}");
+        }
+    }
+    Ok(())
+}
+
+/// `docs/PARAMETERS.md`: every method's table (tests/cli.rs checks the file is current).
+fn params_markdown(methods: &[Method]) -> String {
+    let mut md = String::from(
+        "# Method parameters\n\n\
+         Generated by `gdrecon params --markdown` from the methods' parameter tables \
+         (`src/recon/param.rs`); a test checks that this file is current. The same names are \
+         taken by the CLI (`--param NAME=VALUE`, `--preset NAME`), `gdrecon bench` variants \
+         (`METHOD:NAME=VALUE:PRESET`), the Rust API (`MethodConfig::set`) and the C API \
+         (`gdr_filter_set_float` / `_int` / `_bool`; `gdr_method_param` lists them). A C filter \
+         also takes `spp` (float, 0 = unknown) and `strict` (bool).\n",
+    );
+    for &m in methods {
+        md += &format!("\n## `{m}`\n\n{}.\n\n", m.summary());
+        let rows: Vec<ParamInfo> = m.params();
+        if rows.is_empty() {
+            md += "No parameters.\n";
+        } else {
+            md += "| name | type | default | accepts | meaning |\n|---|---|---|---|---|\n";
+            for p in rows {
+                md += &format!(
+                    "| `{}` | {} | `{}` | {} | {} |\n",
+                    p.name,
+                    p.kind.name(),
+                    p.format(p.default),
+                    p.accepts(),
+                    p.doc
+                );
+            }
+        }
+        let presets = m.presets();
+        if !presets.is_empty() {
+            md += "\nPresets: ";
+            md += &presets
+                .iter()
+                .map(|(name, doc)| format!("`{name}` ({doc})"))
+                .collect::<Vec<_>>()
+                .join("; ");
+            md += ".\n";
+        }
+    }
+    md
 }

@@ -17,7 +17,10 @@ use std::borrow::Cow;
 use rayon::prelude::*;
 
 use super::converged::converged_mask;
-use super::{Method, PoissonL1, PoissonL1Config, Reconstructor};
+use super::param::{self, Param, Params, Preset};
+use super::poisson_l1::PoissonL1;
+use super::{Method, PoissonL1Config, Reconstructor, Register};
+use crate::context::Context;
 use crate::error::{Error, Result};
 use crate::frame::Frame;
 use crate::frame::{FrameBuilder, Layer};
@@ -29,6 +32,7 @@ use crate::validate::Policy;
 /// Which pre-denoised image guides the filter (its `L_d` term and the start of the
 /// gradient enhancement).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
 pub enum FilterGuide {
     /// RDFC's first pass, as the authors' release does (the reference mode).
     Rdfc,
@@ -40,30 +44,40 @@ pub enum FilterGuide {
     Colour,
 }
 
-/// Settings of the filter method.
+impl FilterGuide {
+    /// Every guide, in the order of their names and C indices (`GDR_FILTER_GUIDE_*`).
+    pub const ALL: [FilterGuide; 3] = [
+        FilterGuide::Rdfc,
+        FilterGuide::PoissonL1,
+        FilterGuide::Colour,
+    ];
+    /// Their names, by index.
+    pub const NAMES: &'static [&'static str] = &["rdfc", "l1", "none"];
+
+    /// The guide's index in [`FilterGuide::ALL`].
+    pub fn index(self) -> usize {
+        match self {
+            FilterGuide::Rdfc => 0,
+            FilterGuide::PoissonL1 => 1,
+            FilterGuide::Colour => 2,
+        }
+    }
+}
+
+/// Settings of the filter method; names, defaults and ranges are in its parameter table
+/// below (listed in `docs/PARAMETERS.md`).
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[non_exhaustive]
 pub struct FilterConfig {
-    /// Filter window radius: 3 or 4 (7 x 7 or 9 x 9). Default 4, the release's default.
+    /// Filter window radius.
     pub radius: usize,
-    /// Resolution levels, each 2x coarser (guided linear upsampling between them); 1 to 4.
-    /// Default 2, as the release (bundled sample: 1.37e-3 -> 1.15e-3 with the RDFC guide,
-    /// 7.9e-4 -> 6.1e-4 with the L1 guide).
+    /// Resolution levels, each 2x coarser, linked by guided linear upsampling.
     pub levels: usize,
-    /// Gradient-enhancement iterations (the release's schedule otherwise: initial step, loss
-    /// checks, reverts). Default 250, our fast mode; the release's 1000 is
-    /// [`FilterConfig::reference`]. 0 skips the enhancement (its ablation: the QP's first bias
-    /// term then uses the guide's differences).
-    ///
-    /// Why 250: the descent is stopped early to regularise it, and on our validation set
-    /// stopping sooner is no worse. Against 1000 iterations, the filter's relMSE over the 18
-    /// validation frames is 0.62 % lower (geometric mean; 4 frames worse, by at most 0.66 %,
-    /// 14 better, by up to 2.5 %), and at 720p the filter takes 0.55 s less (3.22 -> 2.67 s on
-    /// cornell; `docs/benchmarks.md`).
+    /// Gradient-enhancement iterations; 0 skips the enhancement.
     pub enhance_iterations: u32,
-    /// The pre-denoiser. Default [`FilterGuide::Rdfc`], the release's.
+    /// The pre-denoiser.
     pub guide: FilterGuide,
-    /// Prefilter albedo and normal (variance-aware bilateral, as the release) before every
-    /// stage reads them. Default on; off is its ablation.
+    /// Prefilter albedo and normal before every stage reads them.
     pub prefilter: bool,
 }
 
@@ -88,27 +102,81 @@ impl FilterConfig {
             ..FilterConfig::default()
         }
     }
+}
 
-    pub(crate) fn validate(&self) -> Result<()> {
-        if !(3..=4).contains(&self.radius) {
-            return Err(Error::arg(format!(
-                "filter radius is {}, expected 3 or 4",
-                self.radius
-            )));
-        }
-        if !(1..=4).contains(&self.levels) {
-            return Err(Error::arg(format!(
-                "filter levels is {}, expected 1 to 4",
-                self.levels
-            )));
-        }
-        if self.enhance_iterations > 100_000 {
-            return Err(Error::arg(format!(
-                "enhance_iterations is {}, expected at most 100000",
-                self.enhance_iterations
-            )));
-        }
-        Ok(())
+impl Params for FilterConfig {
+    const TABLE: &'static [Param<Self>] = &[
+        Param::int(
+            "radius",
+            3,
+            4,
+            "Filter window radius: 3 or 4 (7 x 7 or 9 x 9 windows), 4 as the release",
+            |c| c.radius as i64,
+            |c, v| c.radius = v as usize,
+        ),
+        // Two levels as the release (bundled sample: 1.37e-3 -> 1.15e-3 with the RDFC guide,
+        // 7.9e-4 -> 6.1e-4 with the L1 guide).
+        Param::int(
+            "levels",
+            1,
+            4,
+            "Resolution levels, each 2x coarser, linked by guided linear upsampling",
+            |c| c.levels as i64,
+            |c, v| c.levels = v as usize,
+        ),
+        // Why 250 (the release runs 1000, `reference`): the descent is stopped early to
+        // regularise it, and on the validation set stopping sooner is no worse
+        // (docs/benchmarks.md: relMSE 0.62 % lower over 18 frames, 4 worse by at most 0.66 %).
+        Param::int(
+            "enhance_iterations",
+            0,
+            100_000,
+            "Gradient-enhancement iterations (the release: 1000); 0 skips the enhancement",
+            |c| c.enhance_iterations.into(),
+            |c, v| c.enhance_iterations = v as u32,
+        ),
+        Param::choice(
+            "guide",
+            FilterGuide::NAMES,
+            "The pre-denoised guide: RDFC (the release), our L1 reconstruction, or none (the \
+             noisy colour, an ablation)",
+            |c| c.guide.index(),
+            |c, v| c.guide = FilterGuide::ALL[v],
+        ),
+        Param::bool(
+            "prefilter",
+            "Prefilter albedo and normal (variance-aware bilateral, as the release) before \
+             every stage reads them",
+            |c| c.prefilter,
+            |c, v| c.prefilter = v,
+        ),
+    ];
+
+    const PRESETS: &'static [Preset<Self>] = &[Preset {
+        name: "reference",
+        doc: "the release's schedule literally: 1000 gradient-enhancement iterations",
+        config: FilterConfig::reference,
+    }];
+}
+
+impl Register for FilterConfig {
+    const SWEEP: &'static [&'static str] = &[
+        "",
+        "reference",
+        "levels=1",
+        "guide=l1",
+        "enhance_iterations=0",
+        "guide=none",
+        "prefilter=false",
+    ];
+
+    fn plan(
+        &self,
+        _context: &Context,
+        width: usize,
+        height: usize,
+    ) -> Result<Box<dyn Reconstructor>> {
+        Ok(Box::new(Filter::new(*self, width, height)?))
     }
 }
 
@@ -119,15 +187,15 @@ const REFERENCE_ENHANCE_ITERATIONS: u32 = 1000;
 const LIMIT: f32 = 1e6;
 
 /// The filter method planned for one size.
-pub struct Filter {
+pub(crate) struct Filter {
     cfg: FilterConfig,
 }
 
 impl Filter {
     /// Plans the filter for `width` x `height` frames (the size is not used yet: every
     /// buffer is still allocated per execution).
-    pub fn new(config: FilterConfig, _width: usize, _height: usize) -> Result<Self> {
-        config.validate()?;
+    pub(crate) fn new(config: FilterConfig, _width: usize, _height: usize) -> Result<Self> {
+        param::validate(&config)?;
         Ok(Filter { cfg: config })
     }
 }

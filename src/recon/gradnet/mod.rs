@@ -31,7 +31,13 @@ use std::path::PathBuf;
 
 pub use model::ModelVariant;
 
-/// Settings of [`GradNet`].
+use super::param::{self, Param, Params};
+use super::{Reconstructor, Register};
+use crate::context::Context;
+use crate::error::Result;
+
+/// Settings of GradNet; the tunable ones are declared in its parameter table below (listed in
+/// `docs/PARAMETERS.md`), the paths are where to find the runtime and a model.
 #[derive(Clone, Debug, PartialEq)]
 #[non_exhaustive]
 pub struct GradNetConfig {
@@ -41,14 +47,11 @@ pub struct GradNetConfig {
     pub model: Option<PathBuf>,
     /// The ONNX Runtime library to load, before the other discovery steps.
     pub runtime: Option<PathBuf>,
-    /// Use albedo, normal and depth when the frame has them (the full model); `false` always
-    /// runs the no-feature model.
+    /// Use albedo, normal and depth when the frame has them (the full model).
     pub use_features: bool,
-    /// Tile side in pixels (after padding to a multiple of 8): a frame of more than
-    /// `tile_size²` pixels runs in overlapping square tiles of this side, which bounds the
-    /// network's memory; smaller frames run whole. `0` never tiles. At least 208.
+    /// Tile side in pixels; `0` never tiles.
     pub tile_size: usize,
-    /// Apply the release's Gaussian bias correction (on by default).
+    /// Apply the release's Gaussian bias correction.
     pub bias_correction: bool,
 }
 
@@ -68,8 +71,67 @@ impl Default for GradNetConfig {
 /// 1024 x 1024, under 1.5 GB.
 pub const DEFAULT_TILE: usize = 1024;
 
+impl Params for GradNetConfig {
+    const TABLE: &'static [Param<Self>] = &[
+        Param::int(
+            "tile_size",
+            0,
+            1 << 16,
+            "Tile side in pixels (after padding to a multiple of 8): larger frames run in \
+             overlapping square tiles of this side, bounding the network's memory; 0 never \
+             tiles; otherwise at least 208",
+            |c| c.tile_size as i64,
+            |c, v| c.tile_size = v as usize,
+        ),
+        Param::bool(
+            "bias_correction",
+            "Apply the release's Gaussian bias correction",
+            |c| c.bias_correction,
+            |c, v| c.bias_correction = v,
+        ),
+        Param::bool(
+            "use_features",
+            "Use albedo, normal and depth when the frame has them (the full model); false \
+             always runs the no-feature model",
+            |c| c.use_features,
+            |c, v| c.use_features = v,
+        ),
+    ];
+}
+
+impl Register for GradNetConfig {
+    const SWEEP: &'static [&'static str] = &["", "use_features=false", "bias_correction=false"];
+
+    fn plan(
+        &self,
+        context: &Context,
+        width: usize,
+        height: usize,
+    ) -> Result<Box<dyn Reconstructor>> {
+        param::validate(self)?;
+        #[cfg(feature = "gradnet")]
+        return Ok(Box::new(GradNet::new(
+            self.clone(),
+            context,
+            width,
+            height,
+        )?));
+        #[cfg(not(feature = "gradnet"))]
+        {
+            let _ = (context, width, height);
+            Err(crate::error::Error::Unsupported(
+                "this build of gdrecon has no GradNet (cargo feature `gradnet` is off)".into(),
+            ))
+        }
+    }
+
+    fn gradnet_mut(&mut self) -> Option<&mut GradNetConfig> {
+        Some(self)
+    }
+}
+
 #[cfg(feature = "gradnet")]
-pub use enabled::GradNet;
+pub(crate) use enabled::GradNet;
 
 #[cfg(feature = "gradnet")]
 mod enabled {
@@ -95,7 +157,7 @@ mod enabled {
     type SharedNet = Arc<Mutex<Net>>;
 
     /// GradNet planned for one frame size.
-    pub struct GradNet {
+    pub(crate) struct GradNet {
         config: GradNetConfig,
         context: Context,
         map: FrameMap,
@@ -121,7 +183,7 @@ mod enabled {
         /// Plans GradNet for `width x height` frames on `context`: finds and loads ONNX
         /// Runtime (once per process) and the model (once per context), lays out the tiles and
         /// allocates one tile's buffers.
-        pub fn new(
+        pub(crate) fn new(
             config: GradNetConfig,
             context: &Context,
             width: usize,

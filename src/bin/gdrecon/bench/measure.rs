@@ -18,9 +18,9 @@ pub struct Row {
     pub spp: Option<f32>,
     /// Method name.
     pub method: String,
-    /// Variant setting (`default`, `irls=5`).
+    /// Variant setting (`default`, `reweight_steps=5`).
     pub setting: String,
-    /// Variant label (`l1`, `l1:irls=5`).
+    /// Variant label (`l1`, `l1:reweight_steps=5`).
     pub variant: String,
     /// Size factor against the frame as read.
     pub scale: f64,

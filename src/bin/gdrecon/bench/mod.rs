@@ -5,7 +5,8 @@
 //! `--runs` executions after `--warmup` untimed ones; relMSE is against the frame's reference;
 //! peak memory is the resident high-water mark (VmHWM), reset when each variant starts.
 //!
-//! Variants are methods at named settings (`l1:irls=5`, see [`variant`]); `--sweep` times each
+//! Variants are methods at named settings (`l1:reweight_steps=5`, see [`variant`]); `--sweep`
+//! times each
 //! method's speed/quality variants, `--scales` times resized copies of the frames, and
 //! `--out-dir` writes the report: `results.csv`, `results.json`, `summary.md` and the Pareto
 //! plots `pareto.png` / `pareto.svg`.
@@ -27,7 +28,7 @@ use gdrecon::{Context, ContextOptions};
 use self::frames::BenchFrame;
 use self::measure::{Row, Schedule};
 use self::variant::Variant;
-use crate::MethodArgs;
+use crate::RuntimeArgs;
 
 /// Arguments of `gdrecon bench`.
 #[derive(Args)]
@@ -40,18 +41,19 @@ pub struct BenchArgs {
     /// Comma-separated methods (each at its default settings, or its variants with --sweep).
     #[arg(long, default_value = "l2,l1")]
     methods: String,
-    /// Time each method's speed/quality variants: l2; l1, l1:irls=5, l1:published; filter,
-    /// filter:reference (the release's 1000 enhancement iterations), filter:levels=1,
-    /// filter:guide=l1, filter:enhance=0, filter:guide=none, filter:noprefilter (the
-    /// ablations); gradnet, gradnet:nofeat, gradnet:nobias.
-    #[arg(long)]
+    /// Time each method's speed/quality variants (each method declares its own: the release's
+    /// schedule and the ablations; `gdrecon bench --help` lists them).
+    #[arg(long, long_help = sweep_help())]
     sweep: bool,
-    /// Comma-separated variants METHOD[:OPTION...] instead of --methods, e.g.
-    /// `l2,l1:irls=5:tol=0,filter:guide=l1,gradnet:nofeat`. Options: l2 alpha=X; l1 alpha=X,
-    /// irls=N, cg=N, tol=X, published, fast; filter levels=N, radius=N, enhance=N,
-    /// guide=rdfc|l1|none, noprefilter, reference; gradnet nofeat, nobias, tile=N.
+    /// Comma-separated variants METHOD[:PRESET][:NAME=VALUE...] instead of --methods, e.g.
+    /// `l2,l1:reweight_steps=5:cg_tolerance=0,filter:guide=l1,gradnet:use_features=false`;
+    /// `gdrecon params` lists every method's parameters and presets.
     #[arg(long, conflicts_with_all = ["sweep", "methods"])]
     settings: Option<String>,
+    /// A parameter NAME=VALUE for every variant whose method has it (a variant's own options
+    /// override it); repeat for several.
+    #[arg(long = "param", short = 'p', value_name = "NAME=VALUE")]
+    params: Vec<String>,
     /// Also time every frame resized by these factors, e.g. 0.5,1,2 (nearest-neighbour; 1 is
     /// the frame as read). relMSE is reported at factor 1 only.
     #[arg(long)]
@@ -75,7 +77,18 @@ pub struct BenchArgs {
     #[arg(long, default_value = "gdrecon bench")]
     title: String,
     #[command(flatten)]
-    method: MethodArgs,
+    runtime: RuntimeArgs,
+}
+
+/// `--sweep`'s help: every method's sweep, from the registry.
+fn sweep_help() -> String {
+    let mut help =
+        String::from("Time each method's speed/quality variants instead of its defaults alone:");
+    for m in gdrecon::Method::ALL {
+        let names = variant::names_for_methods(m.name(), true).unwrap_or_default();
+        help += &format!("\n  {m}: {}", names.join(", "));
+    }
+    help
 }
 
 /// Runs `gdrecon bench`.
@@ -91,9 +104,7 @@ pub fn run(args: BenchArgs) -> gdrecon::Result<()> {
         None => vec![1.0],
     };
     let frames = load_frames(&args)?;
-    let context = Context::new(ContextOptions {
-        threads: args.threads,
-    })?;
+    let context = Context::new(ContextOptions::with_threads(args.threads))?;
     let schedule = Schedule {
         warmup: args.warmup,
         runs: args.runs,
@@ -130,10 +141,12 @@ fn variants(args: &BenchArgs) -> gdrecon::Result<Vec<Variant>> {
             "no method to time: --methods / --settings is empty".into(),
         ));
     }
-    names
+    let variants = names
         .iter()
-        .map(|n| variant::parse(n, &args.method))
-        .collect()
+        .map(|n| variant::parse(n, &args.params, &args.runtime))
+        .collect::<gdrecon::Result<Vec<_>>>()?;
+    variant::check_common(&args.params, &variants)?;
+    Ok(variants)
 }
 
 /// The bundles named on the command line, then the synthetic frame.

@@ -278,15 +278,24 @@ fn methods(points: &[Point]) -> Vec<String> {
     out
 }
 
-/// A fixed colour per method.
+/// A fixed colour per method: its place in the registry's order picks one of these.
+const PALETTE: [RGBColor; 8] = [
+    RGBColor(31, 119, 180),
+    RGBColor(44, 160, 44),
+    RGBColor(214, 39, 40),
+    RGBColor(148, 103, 189),
+    RGBColor(255, 127, 14),
+    RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+    RGBColor(23, 190, 207),
+];
+
+/// The colour of `method`; grey for a name this build does not know.
 fn method_color(method: &str) -> RGBColor {
-    match method {
-        "l2" => RGBColor(31, 119, 180),
-        "l1" => RGBColor(44, 160, 44),
-        "filter" => RGBColor(214, 39, 40),
-        "gradnet" => RGBColor(148, 103, 189),
-        _ => RGBColor(90, 90, 90),
-    }
+    gdrecon::Method::ALL
+        .iter()
+        .position(|m| m.name() == method)
+        .map_or(RGBColor(90, 90, 90), |i| PALETTE[i % PALETTE.len()])
 }
 
 /// A log axis range around positive values, with room for labels.
