@@ -19,7 +19,7 @@ fn poisson(c: &mut Criterion) {
         ("l1", MethodConfig::PoissonL1(PoissonL1Config::default())),
     ] {
         let mut plan = Plan::new(&ctx, &config, w, h).unwrap();
-        let mut out = Image::zeros(3, h, w);
+        let mut out = Image::zeros(3, w, h);
         group.bench_function(name, |b| {
             b.iter(|| {
                 plan.execute_into(&frame, &mut out, &Progress::none())

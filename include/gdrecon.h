@@ -25,11 +25,13 @@
  * Handles. gdr_context and gdr_filter are reference counted: *_retain adds a reference,
  * *_release(&h) drops one and sets h to NULL (releasing NULL is a no-op). A filter keeps its
  * context alive. gdr_frame is owned by its creator and freed by gdr_frame_release(&frame).
- * Parameters are set by name with typed setters; unknown names and wrong types are errors
- * (GDR_ERROR_INVALID_ARGUMENT) whose message lists the valid names. Setters and set_image take
- * effect at the next gdr_filter_commit: gdr_filter_execute on a filter changed since its last
- * commit fails with GDR_ERROR_INVALID_OPERATION. Commit again after changing pointers: it
- * re-plans only when the method settings or the size changed.
+ * Parameters are set by name with typed setters; unknown names, wrong types and values out of
+ * range are errors (GDR_ERROR_INVALID_ARGUMENT) whose message lists the valid names or states
+ * the range. gdr_method_param_count and gdr_method_param list a method's parameters with
+ * their kinds, ranges, defaults and documentation (docs/PARAMETERS.md is the same table).
+ * Setters and set_image take effect at the next gdr_filter_commit: gdr_filter_execute on a
+ * filter changed since its last commit fails with GDR_ERROR_INVALID_OPERATION. Commit again
+ * after changing pointers: it re-plans only when the method settings or the size changed.
  *
  * Images are borrowed, never copied by the caller: `ptr`, width, height, channels and byte
  * strides (0 = packed), interleaved (gdr_filter_set_image) or planar
@@ -61,9 +63,9 @@
  * still uses it. Callbacks run on library threads; user pointers are passed back untouched.
  * Callbacks must not throw or longjmp.
  *
- * ABI evolution. No struct crosses the ABI by value or by pointer: objects are opaque and
- * configured by string-keyed setters, so new parameters, images and methods never change the
- * ABI. Enums are passed as uint32_t and validated. Within a major version (the soname
+ * ABI evolution. Objects are opaque and configured by string-keyed setters, so new
+ * parameters, images and methods never change the ABI. One struct crosses it, gdr_param_info
+ * (filled by gdr_method_param), versioned by its leading size field: fields are only appended. Enums are passed as uint32_t and validated. Within a major version (the soname
  * libgdrecon.so.MAJOR), functions are only added, never changed or removed; check
  * gdr_version() >= GDR_VERSION at run time to detect a header newer than the library.
  */
@@ -142,6 +144,25 @@ enum gdr_error
 typedef uint32_t gdr_error;
 #endif // __cplusplus
 
+// The kind of a parameter, and which `gdr_filter_set_*` / `gdr_filter_get_*` pair it takes.
+enum gdr_param_kind
+#ifdef __cplusplus
+  : uint32_t
+#endif // __cplusplus
+ {
+    // A float: `gdr_filter_set_float`.
+    GDR_PARAM_FLOAT = 0,
+    // An integer: `gdr_filter_set_int`.
+    GDR_PARAM_INT = 1,
+    // A boolean: `gdr_filter_set_bool`.
+    GDR_PARAM_BOOL = 2,
+    // One of the names in `choices`, set by its index with `gdr_filter_set_int`.
+    GDR_PARAM_CHOICE = 3,
+};
+#ifndef __cplusplus
+typedef uint32_t gdr_param_kind;
+#endif // __cplusplus
+
 // Log levels for the context's log callback (`log_level` parameter).
 enum gdr_log_level
 #ifdef __cplusplus
@@ -177,6 +198,34 @@ typedef void (*gdr_log_fn)(void *user, uint32_t level, const char *message);
 
 // Progress callback: `fraction` done in [0, 1]; return false to cancel.
 typedef bool (*gdr_progress_fn)(void *user, double fraction);
+
+// One parameter of a method, as `gdr_method_param` describes it; its strings are static.
+//
+// The one struct that crosses the ABI, versioned by its first field: set `size` to
+// `sizeof(gdr_param_info)` before the call. Later versions only append fields and fill no more
+// than `size` bytes, so a program built against this header keeps working.
+typedef struct {
+    // Set by the caller: `sizeof(gdr_param_info)`.
+    size_t size;
+    // The name the setters take.
+    const char *name;
+    // Its kind: which setter it takes.
+    gdr_param_kind kind;
+    // Lowest accepted value (a choice: 0; a bool: 0).
+    double min;
+    // Highest accepted value (a choice: the last index; a bool: 1).
+    double max;
+    // `min` itself is not accepted.
+    bool min_exclusive;
+    // `max` itself is not accepted.
+    bool max_exclusive;
+    // The default (a bool as 0 or 1, a choice as its index).
+    double default_value;
+    // A choice's names by index, separated by commas (`"rdfc,l1,none"`); `""` otherwise.
+    const char *choices;
+    // One line: what it does.
+    const char *doc;
+} gdr_param_info;
 
 #ifdef __cplusplus
 extern "C" {
@@ -237,22 +286,22 @@ gdr_error gdr_filter_retain(gdr_filter *filter);
 // Drop the reference `*filter` and set `*filter` to NULL (no-op when `*filter` is NULL); the last one frees the filter.
 gdr_error gdr_filter_release(gdr_filter **filter);
 
-// Set a float parameter: `"alpha"` (screened Poisson weight), `"spp"` (0 = unknown); l1 also `"cg_tolerance"`.
+// Set a float parameter of the filter's method (see `gdr_method_param`, or docs/PARAMETERS.md), or `"spp"` (0 = unknown).
+//
+// An unknown name, a parameter of another type or a value out of its range is
+// `GDR_ERROR_INVALID_ARGUMENT`, with a message that lists the names or states the range.
 gdr_error gdr_filter_set_float(gdr_filter *filter, const char *name, float value);
 
-// Set an integer parameter: l1 `"reweight_steps"` (IRLS steps) and `"cg_iterations"` (per step); gradnet `"tile_size"` (frames above tile_size² pixels run in tiles of that side; 0 = never); filter `"radius"` (3 or 4, default 4), `"levels"` (1 to 4, default 2), `"enhance_iterations"` (default 250, the fast mode; 1000 = the release's reference mode; 0 = no gradient enhancement), `"guide"` (a `GDR_FILTER_GUIDE_*` value, default RDFC).
+// Set an integer parameter of the filter's method, or a choice by its index (filter `"guide"`: a `GDR_FILTER_GUIDE_*` value).
 gdr_error gdr_filter_set_int(gdr_filter *filter, const char *name, int32_t value);
 
-// Set a boolean parameter: `"strict"` (NaN/Inf/negative input is an error instead of replaced); l1 also `"preconditioned"`; gradnet `"bias_correction"`, `"use_features"` (both default true); filter `"prefilter"` (the feature prefilter, default true).
-//
-// `"internal_test_panic"` = true is reserved for tests: it raises an internal error inside the
-// library, which must come back as `GDR_ERROR_UNKNOWN` (no panic crosses the ABI).
+// Set a boolean parameter of the filter's method, or `"strict"` (NaN/Inf/negative input is an error instead of replaced).
 gdr_error gdr_filter_set_bool(gdr_filter *filter, const char *name, bool value);
 
 // Read a float parameter into `*value`.
 gdr_error gdr_filter_get_float(gdr_filter *filter, const char *name, float *value);
 
-// Read an integer parameter into `*value`.
+// Read an integer (or choice index) parameter into `*value`.
 gdr_error gdr_filter_get_int(gdr_filter *filter, const char *name, int32_t *value);
 
 // Read a boolean parameter into `*value`.
@@ -322,6 +371,12 @@ gdr_error gdr_frame_get_info(const gdr_frame *frame, size_t *width, size_t *heig
 // Names: `color`, `dx`, `dy`, `variance`, `albedo`, `normal`, `depth`, `reference`. Pass the
 // layer to `gdr_filter_set_image_planar` with 0 strides. Valid until the frame is released.
 gdr_error gdr_frame_get_layer(const gdr_frame *frame, const char *name, const float **data, size_t *channels);
+
+// Write into `*count` how many parameters a filter running `method` takes (the method's own, then `"spp"` and `"strict"`).
+gdr_error gdr_method_param_count(const char *method, size_t *count);
+
+// Describe parameter `index` (0 to count - 1) of `method` in `*info` (whose `size` the caller sets to `sizeof(gdr_param_info)`): name, kind, range, default, choices, documentation; its strings are static.
+gdr_error gdr_method_param(const char *method, size_t index, gdr_param_info *info);
 
 #ifdef __cplusplus
 }  // extern "C"

@@ -2,7 +2,9 @@
 //!
 //! An [`Image`] is an `ndarray` of shape `(channels, height, width)` in standard (row-major)
 //! layout: each channel is one contiguous plane, rows top to bottom, `y` growing downward and
-//! `x` to the right. Planar storage keeps the per-channel solvers (DCT, conjugate gradients,
+//! `x` to the right. Its API takes sizes and positions as everything in gdrecon does
+//! (`docs/CONVENTIONS.md`): width before height, `x` before `y`; only the storage, reached
+//! through [`Image::planes`], is indexed `[c, y, x]`. Planar storage keeps the per-channel solvers (DCT, conjugate gradients,
 //! filters) on unit-stride rows; interleaved caller buffers are copied in once at validation.
 
 use ndarray::{Array3, ArrayView2, ArrayView3, ArrayViewMut2, Axis};
@@ -17,8 +19,8 @@ pub struct Image {
 }
 
 impl Image {
-    /// An image of zeros.
-    pub fn zeros(channels: usize, height: usize, width: usize) -> Self {
+    /// An image of zeros, `width` x `height`.
+    pub fn zeros(channels: usize, width: usize, height: usize) -> Self {
         Image {
             planes: Array3::zeros((channels, height, width)),
         }
@@ -34,26 +36,27 @@ impl Image {
         Image { planes }
     }
 
-    /// Builds an image from a closure `f(channel, y, x)`.
+    /// Builds a `width` x `height` image from a closure `f((channel, x, y))`, called in
+    /// storage order (channel by channel, row by row).
     pub fn from_fn(
         channels: usize,
-        height: usize,
         width: usize,
-        f: impl FnMut((usize, usize, usize)) -> f32,
+        height: usize,
+        mut f: impl FnMut((usize, usize, usize)) -> f32,
     ) -> Self {
         Image {
-            planes: Array3::from_shape_fn((channels, height, width), f),
+            planes: Array3::from_shape_fn((channels, height, width), |(c, y, x)| f((c, x, y))),
         }
     }
 
     /// [`Image::from_fn`] with the rows filled in parallel (`f` must not depend on the order).
     pub fn par_from_fn(
         channels: usize,
-        height: usize,
         width: usize,
+        height: usize,
         f: impl Fn((usize, usize, usize)) -> f32 + Sync,
     ) -> Self {
-        let mut img = Image::zeros(channels, height, width);
+        let mut img = Image::zeros(channels, width, height);
         if width > 0 {
             img.as_mut_slice()
                 .par_chunks_mut(width)
@@ -61,7 +64,7 @@ impl Image {
                 .for_each(|(r, row)| {
                     let (c, y) = (r / height, r % height);
                     for (x, v) in row.iter_mut().enumerate() {
-                        *v = f((c, y, x));
+                        *v = f((c, x, y));
                     }
                 });
         }
@@ -78,12 +81,12 @@ impl Image {
         Image { planes }
     }
 
-    /// Builds an image from a row-major interleaved buffer `[y][x][c]`.
+    /// Builds a `width` x `height` image from a row-major interleaved buffer `[y][x][c]`.
     pub fn from_interleaved(
         data: &[f32],
         channels: usize,
-        height: usize,
         width: usize,
+        height: usize,
     ) -> Result<Self> {
         let view = ArrayView3::from_shape((height, width, channels), data).map_err(|_| {
             Error::arg(format!(
@@ -174,14 +177,14 @@ impl Image {
     /// of `dx` and the last row of `dy`. Exact gradients, e.g. for tests and synthetic frames.
     pub fn forward_differences(&self) -> (Image, Image) {
         let (w, h, ch) = (self.width(), self.height(), self.channels());
-        let dx = Image::from_fn(ch, h, w, |(c, y, x)| {
+        let dx = Image::from_fn(ch, w, h, |(c, x, y)| {
             if x + 1 < w {
                 self.at(c, x + 1, y) - self.at(c, x, y)
             } else {
                 0.0
             }
         });
-        let dy = Image::from_fn(ch, h, w, |(c, y, x)| {
+        let dy = Image::from_fn(ch, w, h, |(c, x, y)| {
             if y + 1 < h {
                 self.at(c, x, y + 1) - self.at(c, x, y)
             } else {

@@ -94,8 +94,8 @@ mod tests {
 
     #[test]
     fn hand_computed_values() {
-        let r = Image::from_fn(1, 1, 2, |(_, _, x)| [0.0, 1.0][x]);
-        let i = Image::from_fn(1, 1, 2, |(_, _, x)| [0.1, 0.5][x]);
+        let r = Image::from_fn(1, 2, 1, |(_, x, _)| [0.0, 1.0][x]);
+        let i = Image::from_fn(1, 2, 1, |(_, x, _)| [0.1, 0.5][x]);
         let m = compare(&i, &r).unwrap();
         let rel = (0.01f64 / 0.01 + 0.25 / 1.01) / 2.0;
         assert!((m.rel_mse - rel).abs() < 1e-7, "{}", m.rel_mse);
@@ -114,6 +114,6 @@ mod tests {
 
     #[test]
     fn size_mismatch_is_an_error() {
-        assert!(compare(&Image::zeros(3, 2, 2), &Image::zeros(3, 2, 3)).is_err());
+        assert!(compare(&Image::zeros(3, 2, 2), &Image::zeros(3, 3, 2)).is_err());
     }
 }

@@ -78,10 +78,10 @@ fn scene(x: f32, y: f32, w: f32, h: f32) -> ([f32; 3], [f32; 3], [f32; 3], f32) 
 pub fn synthetic_frame(width: usize, height: usize, spp: f32, seed: u64) -> Frame {
     let (w, h) = (width, height);
     let (wf, hf) = (w as f32, h as f32);
-    let mut reference = Image::zeros(3, h, w);
-    let mut albedo = Image::zeros(3, h, w);
-    let mut normal = Image::zeros(3, h, w);
-    let mut depth = Image::zeros(1, h, w);
+    let mut reference = Image::zeros(3, w, h);
+    let mut albedo = Image::zeros(3, w, h);
+    let mut normal = Image::zeros(3, w, h);
+    let mut depth = Image::zeros(1, w, h);
     for y in 0..h {
         for x in 0..w {
             let (rad, alb, nrm, dep) = scene(x as f32 + 0.5, y as f32 + 0.5, wf, hf);
@@ -97,7 +97,7 @@ pub fn synthetic_frame(width: usize, height: usize, spp: f32, seed: u64) -> Fram
     let inv_sqrt_spp = 1.0 / spp.max(1e-3).sqrt();
     let sigma = |r: f32| (0.6 * r.sqrt() + 0.05) * inv_sqrt_spp;
     let mut color = reference.clone();
-    let mut variance = Image::zeros(3, h, w);
+    let mut variance = Image::zeros(3, w, h);
     for c in 0..3 {
         for y in 0..h {
             for x in 0..w {
@@ -113,7 +113,7 @@ pub fn synthetic_frame(width: usize, height: usize, spp: f32, seed: u64) -> Fram
         }
     }
     let mut gradient = |axis_x: bool| {
-        let mut g = Image::zeros(3, h, w);
+        let mut g = Image::zeros(3, w, h);
         for c in 0..3 {
             for y in 0..h {
                 for x in 0..w {

@@ -68,9 +68,9 @@ fn exact_gradients_recover_the_image_from_any_zero_mean_noisy_base_at_alpha_zero
 #[test]
 fn constant_base_with_zero_gradients_stays_constant() {
     let (w, h) = (20, 11);
-    let base = Image::from_fn(3, h, w, |(c, _, _)| 0.5 + c as f32);
+    let base = Image::from_fn(3, w, h, |(c, _, _)| 0.5 + c as f32);
     let out = l2(
-        &frame(base.clone(), Image::zeros(3, h, w), Image::zeros(3, h, w)),
+        &frame(base.clone(), Image::zeros(3, w, h), Image::zeros(3, w, h)),
         0.2,
     );
     for c in 0..3 {
@@ -79,7 +79,7 @@ fn constant_base_with_zero_gradients_stays_constant() {
         }
     }
     let out = l1(
-        &frame(base, Image::zeros(3, h, w), Image::zeros(3, h, w)),
+        &frame(base, Image::zeros(3, w, h), Image::zeros(3, w, h)),
         PoissonL1Config::default(),
     );
     for c in 0..3 {
@@ -103,8 +103,8 @@ fn zero_gradients_smooth_the_base() {
     let (w, h) = frame0.size();
     let f = frame(
         frame0.color().clone(),
-        Image::zeros(3, h, w),
-        Image::zeros(3, h, w),
+        Image::zeros(3, w, h),
+        Image::zeros(3, w, h),
     );
     let out = l2(&f, 0.2);
     let tv = |img: &Image| -> f64 {

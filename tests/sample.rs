@@ -27,7 +27,7 @@ fn every_method_beats_the_base_image_on_the_sample() {
     let frame = io::read_bundle(SAMPLE, Policy::Replace).unwrap();
     let reference = frame.reference().unwrap();
     let base = metrics::compare(frame.color(), reference).unwrap().rel_mse;
-    for method in Method::ALL {
+    for method in Method::ALL.into_iter().filter(|m| m.is_built()) {
         let (out, _) = reconstruct(&frame, &MethodConfig::default_for(method)).unwrap();
         let rel = metrics::compare(&out, reference).unwrap().rel_mse;
         assert!(

@@ -26,7 +26,7 @@ fn half_empty(pad: usize) -> Frame {
     let sample = sample();
     let (w, h) = sample.size();
     let widen = |img: &Image| {
-        Image::from_fn(img.channels(), h, w + pad, |(c, y, x)| {
+        Image::from_fn(img.channels(), w + pad, h, |(c, x, y)| {
             if x >= pad {
                 img.at(c, x - pad, y)
             } else {
@@ -161,7 +161,7 @@ fn half_converged() -> Frame {
     let (w, h) = sample.size();
     let reference = sample.reference().unwrap();
     let converged = |x: usize| x >= w;
-    let colour = Image::from_fn(3, h, 2 * w, |(c, y, x)| {
+    let colour = Image::from_fn(3, 2 * w, h, |(c, x, y)| {
         if converged(x) {
             reference.at(c, x - w, y)
         } else {
@@ -170,7 +170,7 @@ fn half_converged() -> Frame {
     });
     let (exact_dx, exact_dy) = colour.forward_differences();
     let pick = |layer: Layer, exact: &Image| {
-        Image::from_fn(3, h, 2 * w, |(c, y, x)| {
+        Image::from_fn(3, 2 * w, h, |(c, x, y)| {
             if x + 1 >= w {
                 exact.at(c, x, y)
             } else {
@@ -178,7 +178,7 @@ fn half_converged() -> Frame {
             }
         })
     };
-    let variance = Image::from_fn(3, h, 2 * w, |(c, y, x)| {
+    let variance = Image::from_fn(3, 2 * w, h, |(c, x, y)| {
         if converged(x) {
             0.0
         } else {
@@ -241,7 +241,7 @@ fn write_frames() {
     // Control: the noisy sample twice, side by side (same size as the others).
     let (w, h) = sample.size();
     let twice =
-        |img: &Image| Image::from_fn(img.channels(), h, 2 * w, |(c, y, x)| img.at(c, x % w, y));
+        |img: &Image| Image::from_fn(img.channels(), 2 * w, h, |(c, x, y)| img.at(c, x % w, y));
     let mut b = FrameBuilder::new().spp(sample.spp());
     for layer in [Layer::Color, Layer::Dx, Layer::Dy, Layer::Variance] {
         b = b.image(layer, twice(sample.layer(layer).unwrap()));

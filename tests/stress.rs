@@ -20,7 +20,7 @@ struct Case {
 }
 
 fn filled(w: usize, h: usize, f: impl FnMut((usize, usize, usize)) -> f32) -> Image {
-    Image::from_fn(3, h, w, f)
+    Image::from_fn(3, w, h, f)
 }
 
 fn cases() -> Vec<Case> {
@@ -34,7 +34,7 @@ fn cases() -> Vec<Case> {
             spp,
         })
     };
-    let z = |w, h| Image::zeros(3, h, w);
+    let z = |w, h| Image::zeros(3, w, h);
     for (w, h) in [
         (1, 1),
         (1, 9),
@@ -106,7 +106,7 @@ fn cases() -> Vec<Case> {
     );
     let img = test_image(20, 20);
     let (dx, dy) = exact_gradients(&img);
-    let scale = |g: &Image, s: f32| filled(20, 20, |(c, y, x)| g.at(c, x, y) * s);
+    let scale = |g: &Image, s: f32| filled(20, 20, |(c, x, y)| g.at(c, x, y) * s);
     add(
         "gradients 1e4 x too large",
         img.clone(),
@@ -165,7 +165,7 @@ fn every_method_survives_every_case_within_the_bound() {
                 f64::from(gx.max(gy))
             })
             .fold(0.0, f64::max);
-        for method in Method::ALL {
+        for method in Method::ALL.into_iter().filter(|m| m.is_built()) {
             let config = MethodConfig::default_for(method);
             if method == Method::Filter && frame.spp().is_none() {
                 // The filter's weights depend on the sample count: it must ask for it.
@@ -207,7 +207,10 @@ fn every_method_survives_every_case_within_the_bound() {
         }
     }
     println!("{count} case x method runs");
-    assert_eq!(count, cases().len() * Method::ALL.len());
+    assert_eq!(
+        count,
+        cases().len() * Method::ALL.iter().filter(|m| m.is_built()).count()
+    );
 }
 
 #[test]
@@ -226,7 +229,7 @@ fn replaced_values_are_reported() {
         .spp(Some(4.0))
         .build(Policy::Replace)
         .unwrap();
-    for method in Method::ALL {
+    for method in Method::ALL.into_iter().filter(|m| m.is_built()) {
         let (_, report) = reconstruct(&frame, &MethodConfig::default_for(method)).unwrap();
         assert_eq!(report.sanitized.layer(Layer::Color).non_finite, 1);
         assert!(

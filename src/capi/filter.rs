@@ -152,7 +152,7 @@ impl State {
             self.planned = None;
             self.out = Image::zeros(3, 0, 0);
             self.plan = Some(Plan::new(pool, &self.config, w, h)?);
-            self.out = Image::zeros(3, h, w);
+            self.out = Image::zeros(3, w, h);
             self.planned = Some((self.config.clone(), w, h));
             note = format!("planned method {} for {w} x {h}", self.config.method());
         }

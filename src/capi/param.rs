@@ -25,12 +25,18 @@ pub enum gdr_param_kind {
 }
 
 /// One parameter of a method, as `gdr_method_param` describes it; its strings are static.
+///
+/// The one struct that crosses the ABI, versioned by its first field: set `size` to
+/// `sizeof(gdr_param_info)` before the call. Later versions only append fields and fill no more
+/// than `size` bytes, so a program built against this header keeps working.
 #[repr(C)]
 #[derive(Clone, Copy, Debug)]
 pub struct gdr_param_info {
+    /// Set by the caller: `sizeof(gdr_param_info)`.
+    pub size: usize,
     /// The name the setters take.
     pub name: *const c_char,
-    /// Its type.
+    /// Its kind: which setter it takes.
     pub kind: gdr_param_kind,
     /// Lowest accepted value (a choice: 0; a bool: 0).
     pub min: f64,
@@ -166,6 +172,7 @@ fn build(method: Method) -> Listing {
     let infos = filter_params(method)
         .iter()
         .map(|p| gdr_param_info {
+            size: std::mem::size_of::<gdr_param_info>(),
             name: keep(&p.name),
             kind: match p.kind {
                 Kind::Float => gdr_param_kind::GDR_PARAM_FLOAT,
@@ -206,7 +213,7 @@ pub unsafe extern "C" fn gdr_method_param_count(
     })
 }
 
-/// Describe parameter `index` (0 to count - 1) of `method` in `*info`: name, type, range, default, choices, documentation; its strings are static.
+/// Describe parameter `index` (0 to count - 1) of `method` in `*info` (whose `size` the caller sets to `sizeof(gdr_param_info)`): name, kind, range, default, choices, documentation; its strings are static.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_method_param(
     method: *const c_char,
@@ -215,11 +222,23 @@ pub unsafe extern "C" fn gdr_method_param(
 ) -> gdr_error {
     guard("gdr_method_param", || {
         let info = out_ptr(info, "info")?;
+        let ours = std::mem::size_of::<gdr_param_info>();
+        if info.size < ours {
+            return err(
+                GDR_ERROR_INVALID_ARGUMENT,
+                format!(
+                    "info->size is {}, expected sizeof(gdr_param_info) = {ours}: set it before the call",
+                    info.size
+                ),
+            );
+        }
         let method: Method = c_str(method, "method")?.parse()?;
         let infos = &listing(method).infos;
         match infos.get(index) {
             Some(i) => {
-                *info = *i;
+                // A larger `size` is a newer header's struct: its extra fields are left alone.
+                let size = info.size;
+                *info = gdr_param_info { size, ..*i };
                 Ok(())
             }
             None => err(

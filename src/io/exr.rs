@@ -332,7 +332,7 @@ fn assemble(
             have.join(", ")
         ));
     };
-    let mut img = Image::zeros(indices.len(), h, w);
+    let mut img = Image::zeros(indices.len(), w, h);
     let mut names = Vec::new();
     for (c, &i) in indices.iter().enumerate() {
         let (name, _, samples) = &channels[i];
@@ -382,7 +382,7 @@ pub fn read_rgb(path: impl AsRef<Path>) -> Result<Image> {
                     .map(|ch| to_f32(&ch.sample_data))
             })
             .collect();
-        planes.map(|p| Image::from_fn(3, h, w, |(c, y, x)| p[c][y * w + x]))
+        planes.map(|p| Image::from_fn(3, w, h, |(c, x, y)| p[c][y * w + x]))
     };
     find("")
         .or_else(|| find("reference"))

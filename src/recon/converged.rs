@@ -58,14 +58,14 @@ mod tests {
     use crate::validate::Policy;
 
     fn frame(var: f32, grad_error: f32) -> Frame {
-        let colour = Image::from_fn(3, 4, 5, |(c, y, x)| 0.5 + 0.1 * (x + y + c) as f32);
+        let colour = Image::from_fn(3, 5, 4, |(c, x, y)| 0.5 + 0.1 * (x + y + c) as f32);
         let (mut dx, dy) = colour.forward_differences();
         dx.as_mut_slice()[7] += grad_error;
         FrameBuilder::new()
             .image(Layer::Color, colour)
             .image(Layer::Dx, dx)
             .image(Layer::Dy, dy)
-            .image(Layer::Variance, Image::from_fn(3, 4, 5, |_| var))
+            .image(Layer::Variance, Image::from_fn(3, 5, 4, |_| var))
             .build(Policy::Replace)
             .unwrap()
     }

@@ -74,6 +74,9 @@ pub(crate) trait Register: Settings + Clone {
     /// defaults (`"reweight_steps=5"`, `"published"`).
     const SWEEP: &'static [&'static str] = &[""];
 
+    /// Whether this build can run the method (its cargo feature is on).
+    const BUILT: bool = true;
+
     /// Plans the method for `width` x `height` frames (sizes already checked non-zero),
     /// checking the settings first.
     fn plan(
@@ -136,6 +139,15 @@ macro_rules! registry {
             /// The method's presets: `(name, what it sets)`.
             pub fn presets(self) -> Vec<(String, &'static str)> {
                 match self { $( $(#[cfg($cfg)])? Method::$variant => <$config>::presets(), )* }
+            }
+
+            /// Whether this build can run the method: false for `gradnet` without its cargo
+            /// feature (its plans then fail with [`Error::Unsupported`]). Whether ONNX Runtime
+            /// can be found is only known when a plan is made.
+            pub fn is_built(self) -> bool {
+                match self {
+                    $( $(#[cfg($cfg)])? Method::$variant => <$config as Register>::BUILT, )*
+                }
             }
 
             /// The variants `gdrecon bench --sweep` times: options after `method:` (`""`:
@@ -410,7 +422,7 @@ impl Plan {
 
     /// Reconstructs `frame` into a new image.
     pub fn execute(&mut self, frame: &Frame, progress: &Progress) -> Result<(Image, Report)> {
-        let mut out = Image::zeros(3, self.height, self.width);
+        let mut out = Image::zeros(3, self.width, self.height);
         let report = self.execute_into(frame, &mut out, progress)?;
         Ok((out, report))
     }

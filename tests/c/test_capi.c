@@ -146,6 +146,7 @@ static void test_param_listing(gdr_context* ctx) {
         CHECK(count >= 2);
         OK(gdr_filter_new(ctx, method, &f));
         for (k = 0; k < count; k++) {
+            info.size = sizeof info;
             OK(gdr_method_param(method, k, &info));
             CHECK(info.name != NULL && info.name[0] != '\0' && info.doc[0] != '\0');
             CHECK(info.min <= info.default_value && info.default_value <= info.max);
@@ -177,6 +178,8 @@ static void test_param_listing(gdr_context* ctx) {
         OK(gdr_filter_release(&f));
     }
     CHECK(saw_guide);
+    info.size = 4; /* an older, smaller struct than this library's */
+    EXPECT(gdr_method_param("l1", 0, &info), GDR_ERROR_INVALID_ARGUMENT);
     EXPECT(gdr_method_param_count("nope", &count), GDR_ERROR_INVALID_ARGUMENT);
 }
 
@@ -390,11 +393,16 @@ static void test_errors(gdr_context* ctx) {
     OK(gdr_filter_commit(f));
     OK(gdr_filter_execute(f));
 
-    /* Out-of-range parameters are refused at commit; execute then refuses to run. */
-    OK(gdr_filter_set_float(f, "alpha", -1.0f));
-    m = EXPECT(gdr_filter_commit(f), GDR_ERROR_INVALID_ARGUMENT);
-    CONTAINS(m, "alpha");
-    EXPECT(gdr_filter_execute(f), GDR_ERROR_INVALID_OPERATION);
+    /* Out-of-range parameters are refused when set, with the accepted range; the filter keeps
+     * its value and still executes. */
+    m = EXPECT(gdr_filter_set_float(f, "alpha", -1.0f), GDR_ERROR_INVALID_ARGUMENT);
+    CONTAINS(m, "alpha is -1, expected a float in (0, 10000]");
+    {
+        float alpha = 0.0f;
+        OK(gdr_filter_get_float(f, "alpha", &alpha));
+        CHECK(alpha == 0.2f);
+    }
+    OK(gdr_filter_execute(f));
     OK(gdr_filter_set_float(f, "alpha", 0.2f));
 
     /* NaN: replaced by default, an error in strict mode. */

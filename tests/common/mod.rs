@@ -199,7 +199,7 @@ pub fn rel_max_diff(a: &[Vec<f64>], b: &[Vec<f64>]) -> f64 {
 
 /// A smooth test image with an edge, `(x, y)` -> RGB.
 pub fn test_image(w: usize, h: usize) -> Image {
-    Image::from_fn(3, h, w, |(c, y, x)| {
+    Image::from_fn(3, w, h, |(c, x, y)| {
         let (u, v) = (x as f32 / w as f32, y as f32 / h as f32);
         let edge = if u + 0.5 * v > 0.6 { 0.8 } else { 0.1 };
         0.3 + 0.2 * (6.0 * u + c as f32).sin() * (4.0 * v).cos() + edge + 0.1 * c as f32
@@ -226,7 +226,7 @@ pub fn noisy_frame(w: usize, h: usize, seed: u64) -> (Frame, Image) {
     let (dx, dy) = exact_gradients(&clean);
     let mut rng = Lcg(seed);
     let mut noisy = |img: &Image, s: f64| {
-        Image::from_fn(3, h, w, |(c, y, x)| {
+        Image::from_fn(3, w, h, |(c, x, y)| {
             img.at(c, x, y) + (s * rng.signed()) as f32
         })
     };

@@ -673,7 +673,7 @@ mod tests {
     use super::*;
 
     fn ramp(w: usize, h: usize) -> Image {
-        Image::from_fn(3, h, w, |(c, y, x)| {
+        Image::from_fn(3, w, h, |(c, x, y)| {
             0.1 * x as f32 + 0.05 * y as f32 + 0.2 * c as f32
         })
     }
@@ -681,13 +681,13 @@ mod tests {
     #[test]
     fn loss_and_descent_agree_with_a_finite_difference_of_the_energy() {
         let (w, h) = (6, 5);
-        let img = Image::from_fn(3, h, w, |(c, y, x)| ((x * 7 + y * 3 + c) % 5) as f32 * 0.1);
+        let img = Image::from_fn(3, w, h, |(c, x, y)| ((x * 7 + y * 3 + c) % 5) as f32 * 0.1);
         let (dx, dy) = ramp(w, h).forward_differences();
         let alb = Image::from_fn(
             3,
-            h,
             w,
-            |(c, _, x)| if x > 2 { 0.5 } else { 0.1 * c as f32 },
+            h,
+            |(c, x, _)| if x > 2 { 0.5 } else { 0.1 * c as f32 },
         );
         let wt = EnhanceWeights::new(&dx, &dy, Some(&alb), None, 0.7);
         let step = 1e-3f32;
@@ -747,7 +747,7 @@ mod tests {
     }
 
     fn textured(w: usize, h: usize, seed: usize) -> Image {
-        Image::from_fn(3, h, w, |(c, y, x)| {
+        Image::from_fn(3, w, h, |(c, x, y)| {
             let k = (x * 7919 + y * 104_729 + c * 1_299_709 + seed * 15_485_863) % 1000;
             let base = if x > w / 2 { 0.8 } else { 0.2 } + 0.05 * c as f32;
             base + 0.3 * (k as f32 / 1000.0 - 0.5)
@@ -875,10 +875,10 @@ mod tests {
         // Zero target gradients give m = (0.01 / 0.09 + 100)^2 ~ 1e4: the initial step 1e-4 is
         // unstable, the schedule must halve it and then make progress from the start.
         let (w, h) = (40, 30);
-        let noisy = Image::from_fn(3, h, w, |(c, y, x)| {
+        let noisy = Image::from_fn(3, w, h, |(c, x, y)| {
             0.5 + 0.1 * (((x * 7 + y * 13 + c * 5) % 11) as f32 / 11.0 - 0.5)
         });
-        let zero = Image::zeros(3, h, w);
+        let zero = Image::zeros(3, w, h);
         let wt = EnhanceWeights::new(&zero, &zero, None, None, 0.0);
         let (_, outcome) = enhance_reference(&noisy, &zero, &zero, &wt, 1000);
         assert!(outcome.reverts >= 1 && outcome.reverts < 10, "{outcome:?}");
@@ -889,7 +889,7 @@ mod tests {
     fn descent_lowers_the_energy_from_a_noisy_start() {
         let clean = ramp(16, 12);
         let (dx, dy) = clean.forward_differences();
-        let noisy = Image::from_fn(3, 12, 16, |(c, y, x)| {
+        let noisy = Image::from_fn(3, 16, 12, |(c, x, y)| {
             clean.at(c, x, y) + if (x + y) % 2 == 0 { 0.05 } else { -0.05 }
         });
         let wt = EnhanceWeights::new(&dx, &dy, None, None, 0.0);

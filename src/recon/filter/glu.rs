@@ -53,7 +53,7 @@ pub(crate) fn pad_even(img: &Image) -> Cow<'_, Image> {
     if (pw, ph) == (w, h) {
         return Cow::Borrowed(img);
     }
-    Cow::Owned(Image::par_from_fn(img.channels(), ph, pw, |(c, y, x)| {
+    Cow::Owned(Image::par_from_fn(img.channels(), pw, ph, |(c, x, y)| {
         img.at(c, reflect(x as isize, w), reflect(y as isize, h))
     }))
 }
@@ -63,7 +63,7 @@ pub(crate) fn crop(img: Image, w: usize, h: usize) -> Image {
     if img.size() == (w, h) {
         return img;
     }
-    Image::par_from_fn(img.channels(), h, w, |(c, y, x)| img.at(c, x, y))
+    Image::par_from_fn(img.channels(), w, h, |(c, x, y)| img.at(c, x, y))
 }
 
 impl Glu {
@@ -184,7 +184,7 @@ impl Glu {
     /// variance (`variance = true`) of a box block is the variance of the mean, sum / 16.
     pub fn downsample(&self, img: &Image, variance: bool) -> Image {
         let (cw, ch) = self.coarse;
-        Image::par_from_fn(img.channels(), ch, cw, |(c, y, x)| {
+        Image::par_from_fn(img.channels(), cw, ch, |(c, x, y)| {
             match self.samples[y * cw + x] {
                 Sample::Box => {
                     let s = img.at(c, 2 * x, 2 * y)
@@ -239,14 +239,14 @@ impl Glu {
             }
             s / (la * lb) as f32
         };
-        let cdx = Image::par_from_fn(3, ch, cw, |(c, y, x)| {
+        let cdx = Image::par_from_fn(3, cw, ch, |(c, x, y)| {
             if x + 1 < cw {
                 edge(c, (x, y), (x + 1, y))
             } else {
                 0.0
             }
         });
-        let cdy = Image::par_from_fn(3, ch, cw, |(c, y, x)| {
+        let cdy = Image::par_from_fn(3, cw, ch, |(c, x, y)| {
             if y + 1 < ch {
                 edge(c, (x, y), (x, y + 1))
             } else {
@@ -262,13 +262,13 @@ impl Glu {
         let (cw, ch) = self.coarse;
         let cn = cw * ch;
         let s = img.as_slice();
-        let up = Image::par_from_fn(img.channels(), h, w, |(c, y, x)| {
+        let up = Image::par_from_fn(img.channels(), w, h, |(c, x, y)| {
             let (a, b, wt) = self.fit[y * w + x];
             wt * s[c * cn + a as usize] + (1.0 - wt) * s[c * cn + b as usize]
         });
         let var = variance.map(|v| {
             let vs = v.as_slice();
-            Image::par_from_fn(v.channels(), h, w, |(c, y, x)| {
+            Image::par_from_fn(v.channels(), w, h, |(c, x, y)| {
                 let (a, b, wt) = self.fit[y * w + x];
                 wt * wt * vs[c * cn + a as usize]
                     + (1.0 - wt) * (1.0 - wt) * vs[c * cn + b as usize]
@@ -287,7 +287,7 @@ mod tests {
         // A guide that is constant on every 2 x 2 block: downsampling loses nothing and each
         // fine pixel is fitted by its own parent with weight 1.
         let (w, h) = (12, 8);
-        let j = Image::from_fn(9, h, w, |(c, y, x)| {
+        let j = Image::from_fn(9, w, h, |(c, x, y)| {
             ((x / 2) * 7 + (y / 2) * 3 + c) as f32 * 0.1
         });
         let glu = Glu::new(&j);
@@ -301,7 +301,7 @@ mod tests {
     #[test]
     fn exact_gradients_downsample_to_the_exact_gradients_of_the_downsampled_image() {
         let (w, h) = (10, 8);
-        let img = Image::from_fn(3, h, w, |(c, y, x)| {
+        let img = Image::from_fn(3, w, h, |(c, x, y)| {
             ((x * x + 3 * y + c) % 11) as f32 * 0.3 + if x > 5 { 2.0 } else { 0.0 }
         });
         let mut guide = img.clone();
@@ -329,7 +329,7 @@ mod tests {
         // Brute force in f64: for every pair of the parent's 3 x 3 neighbours, the least-squares
         // weight in [0, 1] and its error; the Gram-matrix fit must reach the minimum.
         let (w, h) = (14, 10);
-        let j = Image::from_fn(9, h, w, |(c, y, x)| {
+        let j = Image::from_fn(9, w, h, |(c, x, y)| {
             let k = (x * 7919 + y * 104_729 + c * 1_299_709) % 1000;
             (k as f32 / 1000.0) * if c < 3 { 4.0 } else { 0.3 }
         });
@@ -381,7 +381,7 @@ mod tests {
 
     #[test]
     fn upsampled_variance_uses_squared_weights() {
-        let j = Image::from_fn(3, 4, 4, |(c, y, x)| (x + 2 * y + c) as f32);
+        let j = Image::from_fn(3, 4, 4, |(c, x, y)| (x + 2 * y + c) as f32);
         let glu = Glu::new(&j);
         let v = Image::from_fn(3, 2, 2, |_| 1.0);
         let (_, var) = glu.upsample(&v, Some(&v));
@@ -393,7 +393,7 @@ mod tests {
 
     #[test]
     fn odd_sizes_pad_and_crop_back() {
-        let img = Image::from_fn(3, 5, 7, |(c, y, x)| (x + 10 * y + c) as f32);
+        let img = Image::from_fn(3, 7, 5, |(c, x, y)| (x + 10 * y + c) as f32);
         let p = pad_even(&img);
         assert_eq!(p.size(), (8, 6));
         assert_eq!(p.at(0, 7, 0), img.at(0, 5, 0));

@@ -204,7 +204,7 @@ impl Filter {
 /// neighbourhood's colour (an overestimate at edges, which makes the filter more cautious).
 fn estimate_variance(colour: &Image) -> Image {
     let (w, h) = colour.size();
-    Image::par_from_fn(3, h, w, |(c, y, x)| {
+    Image::par_from_fn(3, w, h, |(c, x, y)| {
         let (mut s, mut s2) = (0.0f32, 0.0f32);
         for dy in -1..=1 {
             for dx in -1..=1 {
@@ -302,7 +302,7 @@ impl Filter {
                 .map(|f| &**f)
                 .collect();
             let (pw, ph) = guide.size();
-            let mut j = Image::zeros(3 + 3 * features.len(), ph, pw);
+            let mut j = Image::zeros(3 + 3 * features.len(), pw, ph);
             let (head, tail) = j.as_mut_slice().split_at_mut(guide.as_slice().len());
             head.copy_from_slice(guide.as_slice());
             for (dst, f) in tail.chunks_mut(3 * pw * ph).zip(&features) {
@@ -499,7 +499,7 @@ impl Reconstructor for Filter {
                     .build(Policy::Replace)?;
                 let (w, h) = colour.size();
                 let mut l1 = PoissonL1::new(PoissonL1Config::default(), w, h)?;
-                let mut out = Image::zeros(3, h, w);
+                let mut out = Image::zeros(3, w, h);
                 let mut sub = Report::default();
                 l1.reconstruct_into(&clean, &mut out, &mut sub, &Progress::none())?;
                 Ok::<_, Error>(out)

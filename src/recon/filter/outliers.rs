@@ -40,7 +40,7 @@ pub(crate) fn remove_outliers(g: &mut Image) -> u64 {
         return 0;
     }
     let src = g.as_slice().to_vec();
-    let lum = Image::par_from_fn(1, h, w, |(_, y, x)| {
+    let lum = Image::par_from_fn(1, w, h, |(_, x, y)| {
         let i = y * w + x;
         LUMA[0] * src[i] + LUMA[1] * src[n + i] + LUMA[2] * src[2 * n + i]
     });
@@ -118,7 +118,7 @@ mod tests {
     #[test]
     fn a_spike_is_replaced_by_the_median_and_smooth_data_is_kept() {
         let (w, h) = (9, 7);
-        let mut g = Image::from_fn(3, h, w, |(c, y, x)| 0.01 * (x + 2 * y + c) as f32);
+        let mut g = Image::from_fn(3, w, h, |(c, x, y)| 0.01 * (x + 2 * y + c) as f32);
         let clean = g.clone();
         g.planes_mut()[[0, 3, 4]] = 50.0;
         g.planes_mut()[[1, 3, 4]] = 50.0;
@@ -180,7 +180,7 @@ mod tests {
         // the window.
         for (w, h) in [(31, 23), (3, 2), (1, 7)] {
             let mut s = 12345u64;
-            let g = Image::from_fn(3, h, w, |(_, y, x)| {
+            let g = Image::from_fn(3, w, h, |(_, x, y)| {
                 s = s.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
                 let u = (s >> 40) as f32 / (1u64 << 24) as f32;
                 if x < 4 && y < 4 {

@@ -64,7 +64,7 @@ fn taps() -> Vec<(isize, isize, f32)> {
 /// symmetric filter leaves unchanged anyway).
 pub(crate) fn feature_variance(f: &Image, spp: f32) -> Image {
     let (w, h) = f.size();
-    let mut out = Image::zeros(1, h, w);
+    let mut out = Image::zeros(1, w, h);
     if w == 0 || h == 0 {
         return out;
     }
@@ -194,7 +194,7 @@ pub(crate) fn prefilter(f: &Image, v: &Image) -> Image {
             x0 += len;
         }
     });
-    Image::par_from_fn(3, h, w, |(c, y, x)| rows[(y * 5 + c) * w + x])
+    Image::par_from_fn(3, w, h, |(c, x, y)| rows[(y * 5 + c) * w + x])
 }
 
 #[cfg(test)]
@@ -203,7 +203,7 @@ mod tests {
 
     fn random_feature(w: usize, h: usize, seed: u64) -> Image {
         let mut s = seed;
-        Image::from_fn(3, h, w, |_| {
+        Image::from_fn(3, w, h, |_| {
             s = s
                 .wrapping_mul(6_364_136_223_846_793_005)
                 .wrapping_add(1_442_695_040_888_963_407);
@@ -255,7 +255,7 @@ mod tests {
         // Odd sizes, smaller than the window (reflection more than once), and ordinary ones.
         for (w, h) in [(23, 17), (4, 3), (1, 6)] {
             let f = random_feature(w, h, 7);
-            let v = Image::from_fn(1, h, w, |(_, y, x)| 0.05 * f.at(0, x, y).powi(2));
+            let v = Image::from_fn(1, w, h, |(_, x, y)| 0.05 * f.at(0, x, y).powi(2));
             let got = prefilter(&f, &v);
             let (want, _) = naive(&f, &v);
             for y in 0..h {
@@ -271,8 +271,8 @@ mod tests {
 
     #[test]
     fn a_constant_feature_stays_constant() {
-        let f = Image::from_fn(3, 12, 15, |(c, _, _)| [0.2, -0.5, 0.9][c]);
-        let got = prefilter(&f, &Image::from_fn(1, 12, 15, |_| 0.01));
+        let f = Image::from_fn(3, 15, 12, |(c, _, _)| [0.2, -0.5, 0.9][c]);
+        let got = prefilter(&f, &Image::from_fn(1, 15, 12, |_| 0.01));
         for (g, e) in got.as_slice().iter().zip(f.as_slice()) {
             assert!((g - e).abs() < 1e-6, "{g} vs {e}");
         }
@@ -282,8 +282,8 @@ mod tests {
     fn an_edge_well_above_the_noise_stops_the_filter() {
         // Left half 0, right half 1 (per channel), noise variance 1e-3: every weight across
         // the edge is below exp(-(3 - 2e-3) / 0.1) = 1e-13 (the tolerance is f32 rounding).
-        let f = Image::from_fn(3, 10, 20, |(_, _, x)| if x < 10 { 0.0 } else { 1.0 });
-        let got = prefilter(&f, &Image::from_fn(1, 10, 20, |_| 1e-3));
+        let f = Image::from_fn(3, 20, 10, |(_, x, _)| if x < 10 { 0.0 } else { 1.0 });
+        let got = prefilter(&f, &Image::from_fn(1, 20, 10, |_| 1e-3));
         for (g, e) in got.as_slice().iter().zip(f.as_slice()) {
             assert!((g - e).abs() < 1e-6, "{g} vs {e}");
         }
@@ -317,7 +317,7 @@ mod tests {
         // Columns 0-2 albedo 0.2, column 3 a 30/70 mix, columns 4-6 albedo 0.8: the mixed
         // pixel's samples are 0.2 with probability 0.3 and 0.8 otherwise (per-sample variance
         // 0.3 * 0.7 * 0.36 = 0.0756 per channel), the others see a single surface.
-        let f = Image::from_fn(3, 5, 7, |(_, _, x)| match x {
+        let f = Image::from_fn(3, 7, 5, |(_, x, _)| match x {
             0..=2 => 0.2,
             3 => 0.3 * 0.2 + 0.7 * 0.8,
             _ => 0.8,

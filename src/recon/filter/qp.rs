@@ -612,8 +612,8 @@ pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, Skipped)
 /// [`gradient_guided_filter`] with `K` bias rows.
 fn filter_rows<const K: usize>(level: &QpLevel, al: &[f32; 5]) -> (Image, Image, Skipped) {
     let (w, h) = level.img.size();
-    let mut out = Image::zeros(3, h, w);
-    let mut out_var = Image::zeros(3, h, w);
+    let mut out = Image::zeros(3, w, h);
+    let mut out_var = Image::zeros(3, w, h);
     if w == 0 || h == 0 {
         return (out, out_var, Skipped::default());
     }

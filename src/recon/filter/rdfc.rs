@@ -585,7 +585,7 @@ pub(crate) fn nlm_candidates(
         tiles.par_iter().map(|&(xr, yr)| nlm.tile(xr, yr)).collect();
     let (m, dch) = (candidates.len(), data.channels());
     let mut out: Vec<(Image, Vec<f32>)> = (0..m)
-        .map(|_| (Image::zeros(dch, h, w), vec![0.0f32; n]))
+        .map(|_| (Image::zeros(dch, w, h), vec![0.0f32; n]))
         .collect();
     for (&((x0, x1), (y0, y1)), (num, ratio)) in tiles.iter().zip(&results) {
         let (tw, tn) = (x1 - x0, (x1 - x0) * (y1 - y0));
@@ -652,7 +652,7 @@ fn rdfc_with(
         })
         .collect();
     let m = filtered.len();
-    let onehot = Image::par_from_fn(m, h, w, |(k, y, x)| {
+    let onehot = Image::par_from_fn(m, w, h, |(k, x, y)| {
         let i = y * w + x;
         let best = (0..m)
             .min_by(|&a, &b| sure[a][i].total_cmp(&sure[b][i]))
@@ -673,7 +673,7 @@ fn rdfc_with(
     .remove(0)
     .0;
     let s = sel.as_slice();
-    Image::par_from_fn(3, h, w, |(ch, y, x)| {
+    Image::par_from_fn(3, w, h, |(ch, x, y)| {
         let i = y * w + x;
         let (mut acc, mut tot) = (0.0, 0.0);
         for (k, (f, _)) in filtered.iter().enumerate() {

@@ -142,14 +142,14 @@ mod tests {
 
     #[test]
     fn identical_input_and_output_give_unit_gain() {
-        let img = Image::from_fn(3, 20, 30, |(c, y, x)| (c + y * x) as f32 * 0.01 + 0.1);
+        let img = Image::from_fn(3, 30, 20, |(c, x, y)| (c + y * x) as f32 * 0.01 + 0.1);
         let mut out = img.clone();
         correct(&mut out, &img);
         for (a, b) in out.as_slice().iter().zip(img.as_slice()) {
             assert!((a - b).abs() <= 1e-6 * b.abs());
         }
         // Twice the input everywhere: gain 1/2 everywhere.
-        let mut doubled = Image::from_fn(3, 20, 30, |(c, y, x)| 2.0 * img.at(c, x, y));
+        let mut doubled = Image::from_fn(3, 30, 20, |(c, x, y)| 2.0 * img.at(c, x, y));
         correct(&mut doubled, &img);
         for (a, b) in doubled.as_slice().iter().zip(img.as_slice()) {
             assert!((a - b).abs() <= 1e-5 * b.abs());

@@ -101,6 +101,7 @@ impl Params for GradNetConfig {
 
 impl Register for GradNetConfig {
     const SWEEP: &'static [&'static str] = &["", "use_features=false", "bias_correction=false"];
+    const BUILT: bool = cfg!(feature = "gradnet");
 
     fn plan(
         &self,

@@ -143,14 +143,14 @@ fn source_index(n_in: usize, n_out: usize) -> Vec<usize> {
 
 /// Nearest-neighbour resampling.
 fn nearest(image: &Image, xs: &[usize], ys: &[usize]) -> Image {
-    Image::from_fn(image.channels(), ys.len(), xs.len(), |(c, y, x)| {
+    Image::from_fn(image.channels(), xs.len(), ys.len(), |(c, x, y)| {
         image.at(c, xs[x], ys[y])
     })
 }
 
 /// `dx` of the nearest-resampled image: source `dx` summed from `xs[x]` to `xs[x + 1] - 1`.
 fn summed_dx(dx: &Image, xs: &[usize], ys: &[usize]) -> Image {
-    Image::from_fn(dx.channels(), ys.len(), xs.len(), |(c, y, x)| {
+    Image::from_fn(dx.channels(), xs.len(), ys.len(), |(c, x, y)| {
         match xs.get(x + 1) {
             Some(&next) => (xs[x]..next).map(|k| dx.at(c, k, ys[y])).sum(),
             None => 0.0,
@@ -160,7 +160,7 @@ fn summed_dx(dx: &Image, xs: &[usize], ys: &[usize]) -> Image {
 
 /// `dy` of the nearest-resampled image: source `dy` summed from `ys[y]` to `ys[y + 1] - 1`.
 fn summed_dy(dy: &Image, xs: &[usize], ys: &[usize]) -> Image {
-    Image::from_fn(dy.channels(), ys.len(), xs.len(), |(c, y, x)| {
+    Image::from_fn(dy.channels(), xs.len(), ys.len(), |(c, x, y)| {
         match ys.get(y + 1) {
             Some(&next) => (ys[y]..next).map(|k| dy.at(c, xs[x], k)).sum(),
             None => 0.0,

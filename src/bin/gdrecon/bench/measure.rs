@@ -79,7 +79,7 @@ pub fn time_variant(
     let mut rows = Vec::with_capacity(frames.len());
     for size in distinct_sizes(frames) {
         let mut plan = Plan::new(context, &variant.config, size.0, size.1)?;
-        let mut out = Image::zeros(3, size.1, size.0);
+        let mut out = Image::zeros(3, size.0, size.1);
         for f in frames.iter().filter(|f| f.frame.size() == size) {
             let (times, stages) = time_runs(&mut plan, f, &mut out, schedule)?;
             let rel_mse = match (f.frame.reference(), f.scale == 1.0) {

@@ -305,8 +305,8 @@ pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, Skipped,
             (out, out_var, skipped, iters)
         })
         .collect();
-    let mut out = Image::zeros(3, h, w);
-    let mut out_var = Image::zeros(3, h, w);
+    let mut out = Image::zeros(3, w, h);
+    let mut out_var = Image::zeros(3, w, h);
     let skipped = rows.iter().fold(Skipped::default(), |a, r| Skipped {
         empty: a.empty + r.2.empty,
         converged: a.converged + r.2.converged,

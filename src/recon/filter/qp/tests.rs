@@ -240,14 +240,14 @@ fn synthetic(w: usize, h: usize, seed: u64) -> Synthetic {
         let (fx, fy) = (x as f32 / w as f32, y as f32 / h as f32);
         0.2 + 0.5 * fx * fy + 0.1 * c as f32 + if x > 2 * w / 3 { 0.4 } else { 0.0 }
     };
-    let img = Image::from_fn(3, h, w, |(c, y, x)| {
+    let img = Image::from_fn(3, w, h, |(c, x, y)| {
         if black(x, y) {
             0.0
         } else {
             shade(c, x, y) * (0.5 + hash(c, x, y, 1))
         }
     });
-    let var = Image::from_fn(3, h, w, |(c, y, x)| {
+    let var = Image::from_fn(3, w, h, |(c, x, y)| {
         if black(x, y) {
             0.0
         } else {
@@ -255,7 +255,7 @@ fn synthetic(w: usize, h: usize, seed: u64) -> Synthetic {
         }
     });
     let near = |salt: u64, amp: f32| {
-        Image::from_fn(3, h, w, move |(c, y, x)| {
+        Image::from_fn(3, w, h, move |(c, x, y)| {
             shade(c, x, y) + amp * (hash(c, x, y, salt) - 0.5)
         })
     };
@@ -264,18 +264,18 @@ fn synthetic(w: usize, h: usize, seed: u64) -> Synthetic {
         guide: near(4, 0.02),
         albedo: Image::from_fn(
             3,
-            h,
             w,
-            |(c, _, x)| if x > w / 3 { 0.8 } else { 0.3 + 0.1 * c as f32 },
+            h,
+            |(c, x, _)| if x > w / 3 { 0.8 } else { 0.3 + 0.1 * c as f32 },
         ),
         normal: Image::from_fn(
             3,
-            h,
             w,
-            |(c, y, _)| if y > h / 2 { c as f32 / 3.0 } else { 0.5 },
+            h,
+            |(c, _, y)| if y > h / 2 { c as f32 / 3.0 } else { 0.5 },
         ),
         up: near(5, 0.1),
-        up_var: Image::from_fn(3, h, w, |(c, y, x)| 0.002 * hash(c, x, y, 6) - 0.0002),
+        up_var: Image::from_fn(3, w, h, |(c, x, y)| 0.002 * hash(c, x, y, 6) - 0.0002),
         converged: (0..w * h).map(|p| p % 7 == 3).collect(),
         img,
         var,

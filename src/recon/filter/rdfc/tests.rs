@@ -108,7 +108,7 @@ fn naive_nlm_candidates(
     }
     (0..m)
         .map(|k| {
-            let mut out = Image::zeros(dch, h, w);
+            let mut out = Image::zeros(dch, w, h);
             let mut ratio = vec![0.0f32; n];
             let o = out.as_mut_slice();
             for i in 0..n {
@@ -133,23 +133,23 @@ fn synthetic(w: usize, h: usize) -> (Image, Image, Image, Image) {
             .wrapping_add(1442695040888963407);
         (s >> 40) as f32 / (1u64 << 24) as f32 - 0.5
     };
-    let var = Image::from_fn(3, h, w, |(c, y, x)| {
+    let var = Image::from_fn(3, w, h, |(c, x, y)| {
         0.002 * (1.0 + ((x + 2 * y + c) % 5) as f32)
     });
     let noise: Vec<f32> = (0..3 * w * h).map(|_| rnd()).collect();
-    let colour = Image::from_fn(3, h, w, |(c, y, x)| {
+    let colour = Image::from_fn(3, w, h, |(c, x, y)| {
         let base = if x * 3 < w + y { 0.2 } else { 0.8 } + 0.1 * c as f32;
         let shade = if (x / 9 + y / 7) % 3 == 0 { 0.3 } else { 0.0 };
         base + shade + noise[(c * h + y) * w + x] * 0.4
     });
-    let albedo = Image::from_fn(3, h, w, |(c, y, x)| {
+    let albedo = Image::from_fn(3, w, h, |(c, x, y)| {
         if x * 3 < w + y {
             0.3 + 0.1 * c as f32
         } else {
             0.7
         }
     });
-    let normal = Image::from_fn(3, h, w, |(c, y, x)| {
+    let normal = Image::from_fn(3, w, h, |(c, x, y)| {
         if (c == 2) == (y < h / 2 + x / 8) {
             1.0
         } else {
@@ -175,7 +175,7 @@ fn tiled_nlm_matches_the_straightforward_one() {
     let (w, h) = (TILE.0 + 21, TILE.1 + 9);
     let (colour, var, albedo, normal) = synthetic(w, h);
     let feats = [Feature::new(&albedo), Feature::new(&normal)];
-    let onehot = Image::from_fn(3, h, w, |(c, y, x)| f32::from(u8::from((x + y) % 3 == c)));
+    let onehot = Image::from_fn(3, w, h, |(c, x, y)| f32::from(u8::from((x + y) % 3 == c)));
     let sel = [Candidate {
         patch: 1,
         kc: Some(0.5),
@@ -291,10 +291,10 @@ fn rdfc_on_frames_matches_the_straightforward_one() {
 #[test]
 fn zero_variance_returns_the_input() {
     let (w, h) = (24, 16);
-    let img = Image::from_fn(3, h, w, |(c, y, x)| {
+    let img = Image::from_fn(3, w, h, |(c, x, y)| {
         ((x * 3 + y * 5 + c) % 7) as f32 * 0.1 + 0.05
     });
-    let out = rdfc(&img, &Image::zeros(3, h, w), None, None);
+    let out = rdfc(&img, &Image::zeros(3, w, h), None, None);
     let d = out.max_abs_diff(&img);
     assert!(d < 1e-5, "{d}");
 }
@@ -309,8 +309,8 @@ fn noise_is_reduced_on_a_flat_image() {
             .wrapping_add(1442695040888963407);
         ((s >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * 0.2
     };
-    let img = Image::from_fn(3, h, w, |_| 0.5 + rnd());
-    let var = Image::from_fn(3, h, w, |_| 0.2 * 0.2 / 12.0);
+    let img = Image::from_fn(3, w, h, |_| 0.5 + rnd());
+    let var = Image::from_fn(3, w, h, |_| 0.2 * 0.2 / 12.0);
     let out = rdfc(&img, &var, None, None);
     let mse = |a: &Image| {
         a.as_slice()
