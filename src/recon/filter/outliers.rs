@@ -32,7 +32,7 @@ fn add_row(sum: &mut [f64], sum2: &mut [f64], lum: &[f32]) {
 ///
 /// The window statistics are summed row by row (vectorised over the row, borders from a
 /// reflect-101 padded copy); only the pixels that fail the test look at their window again
-/// for the median. 720p, dx and dy: 0.085 s -> 0.047 s (cornell), the same bits.
+/// for the median: the same bits as the per-pixel definition (tested), in about half its time.
 pub(crate) fn remove_outliers(g: &mut Image) -> u64 {
     let (w, h) = g.size();
     let n = w * h;

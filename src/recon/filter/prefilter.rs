@@ -22,8 +22,8 @@
 //! would compete with), so it is not computed.
 //!
 //! Cost: 49 taps per pixel and feature, one `exp` each, vectorised over runs of a row
-//! (`fastmath`; AVX-512 and AVX2 builds picked at run time). 720p, both features, with the
-//! variance estimates: about 0.07 s on two cores (0.13 s with the disc of radius 5).
+//! (`fastmath`; AVX-512 and AVX2 builds picked at run time); the radius-4 disc costs half the
+//! radius-5 one (its time and the validation figures: `docs/benchmarks.md`).
 //! Validation set (`docs/benchmarks.md`): relMSE 0.5 % lower with it (geometric mean of the
 //! 18 frames; 12 better, by up to 2.8 %, 6 worse, by up to 2.0 %, mostly at 64 spp, where
 //! the bound overestimates the noise of fine textures).

@@ -30,9 +30,8 @@
 //! in the same order); the exponential is a branch-free polynomial (`fastmath`), which
 //! vectorises where libm's `expf` does not. The row kernels are also compiled for AVX-512 and
 //! for AVX2 + FMA, picked at run time (`multiversion`; the same bits, as Rust never fuses a
-//! multiply-add). At 1280 x 720 on two cores the pre-denoiser takes about 1.1 s (16 s before
-//! the tiling, 1.5 s before the AVX-512 kernels, pairs, row batches and wider tiles). The
-//! previous implementation is kept in the tests as the reference.
+//! multiply-add). What each of these gained is in `docs/benchmarks.md`. The previous
+//! implementation is kept in the tests as the reference.
 
 use rayon::prelude::*;
 
@@ -139,8 +138,8 @@ fn box_mean(src: &[f32], w: usize, h: usize, r: usize, tmp: &mut Vec<f32>, dst: 
 /// 256 x 32 1.21, 512 x 16 1.22, 1280 x 8 1.48: longer rows amortise the per-row calls.
 const TILE: (usize, usize) = (256, 16);
 
-/// Window offsets weighed together (see [`weigh_rows`]): pairs (720p: RDFC 1.17 s -> 1.09 s;
-/// groups of 4 were no faster).
+/// Window offsets weighed together (see [`weigh_rows`]): pairs, faster than single offsets;
+/// groups of 4 were no faster than pairs.
 const GROUP: usize = 2;
 
 /// Colour distance row (Eq. 5-6 without the bandwidth), summed over the 3 channels:

@@ -1,8 +1,8 @@
 //! One ONNX Runtime session running the GradNet graph.
 //!
 //! Settings, each for a reason measured here (see `docs/gradnet.md`): all graph optimisations
-//! (the layout level turns the convolutions into NCHWc kernels: 1.2x faster than the extended
-//! level on the old graph, 3.77 s vs 2.95 s per 720p frame);
+//! (the layout level turns the convolutions into NCHWc kernels, faster than the extended
+//! level);
 //! intra-op threads = the context's thread count and no spinning (a spinning pool steals the
 //! cores from the rayon stages before and after); one inter-op thread (the graph is a chain);
 //! the CPU arena on with memory patterns (fastest; safe because every tile of a plan has the

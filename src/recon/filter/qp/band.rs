@@ -1,0 +1,201 @@
+//! Bands of rows padded with the reflect-101 border, so that the windows of a lane group are
+//! plain slices, and the bias terms read from them.
+
+use super::lanes::F32x;
+use super::level::QpLevel;
+use crate::image::Image;
+use crate::recon::filter::util::reflect;
+
+/// Image rows per band. A band pads its own rows (plus the windows' halo) of every plane it
+/// reads, so that the padded copies stay small whatever the frame size.
+pub(super) const BAND: usize = 16;
+
+/// Rows of a few channels with a reflect-101 border of `r` pixels on every side and
+/// `LANES - 1` more columns on the right, so that a lane group's windows are plain slices.
+pub(super) struct Padded {
+    pub(super) data: Vec<f32>,
+    pub(super) stride: usize,
+    pub(super) plane: usize,
+}
+
+impl Padded {
+    /// Pads rows `y0 - r .. y0 + rows + r` of `channels` planes of a `w` x `h` image given as
+    /// `f(c, pixel index)`; `cols[px]` is the image column of padded column `px`.
+    pub(super) fn new(
+        channels: usize,
+        (w, h): (usize, usize),
+        cols: &[usize],
+        r: usize,
+        (y0, rows): (usize, usize),
+        f: impl Fn(usize, usize) -> f32,
+    ) -> Padded {
+        let (stride, padded_rows) = (cols.len(), rows + 2 * r);
+        let mut data = vec![0.0f32; channels * padded_rows * stride];
+        for (row, out) in data.chunks_exact_mut(stride).enumerate() {
+            let (c, py) = (row / padded_rows, row % padded_rows);
+            let y = reflect((y0 + py) as isize - r as isize, h);
+            for (o, &x) in out.iter_mut().zip(cols) {
+                *o = f(c, y * w + x);
+            }
+        }
+        Padded {
+            data,
+            stride,
+            plane: padded_rows * stride,
+        }
+    }
+
+    /// Padded row `py` of channel `c` (image row `y0 + py - r`) from padded column `x0`.
+    pub(super) fn row(&self, c: usize, py: usize, x0: usize) -> &[f32] {
+        let start = c * self.plane + py * self.stride;
+        &self.data[start + x0..start + self.stride]
+    }
+}
+
+/// The padded planes of one band.
+pub(super) struct Planes {
+    pub(super) img: Padded,
+    pub(super) var: Padded,
+    /// `v`: the summed clamped variances.
+    pub(super) v: Padded,
+    pub(super) enhanced: Padded,
+    pub(super) albedo: Option<Padded>,
+    pub(super) normal: Option<Padded>,
+    pub(super) up: Option<Padded>,
+}
+
+impl Planes {
+    pub(super) fn new(level: &QpLevel, cols: &[usize], band: (usize, usize)) -> Planes {
+        let dims = level.img.size();
+        let (n_px, r) = (dims.0 * dims.1, level.radius);
+        let plain = |img: &Image| {
+            let s = img.as_slice();
+            Padded::new(3, dims, cols, r, band, |c, q| s[c * n_px + q])
+        };
+        let var = level.var.as_slice();
+        let up_var = level.up.map(|(_, v)| v.as_slice());
+        Planes {
+            img: plain(level.img),
+            var: plain(level.var),
+            v: Padded::new(1, dims, cols, r, band, |_, q| {
+                let mut vq = 0.0;
+                for c in 0..3 {
+                    vq += var[c * n_px + q].max(0.0);
+                    if let Some(uv) = up_var {
+                        vq += uv[c * n_px + q].max(0.0);
+                    }
+                }
+                vq
+            }),
+            enhanced: plain(level.enhanced),
+            albedo: level.albedo.map(plain),
+            normal: level.normal.map(plain),
+            up: level.up.map(|(u, _)| plain(u)),
+        }
+    }
+
+    /// The bias terms whose input is present, in the release's order: those in the objective
+    /// (`al`, `k / 3` of them, padded with zero-weight ones if fewer: never needed) have rows;
+    /// dropped ones (`level.dropped`) only count in the initial weights.
+    pub(super) fn terms<'a>(
+        &'a self,
+        level: &'a QpLevel,
+        al: &[f32; 5],
+        k: usize,
+    ) -> Vec<Term<'a>> {
+        let present = level.present_alphas();
+        let term = |src, centre: &'a Image, residual, a: usize| {
+            let sq = present[a].sqrt();
+            Term {
+                src,
+                centre: centre.as_slice(),
+                residual,
+                sq: F32x::splat(sq),
+                unscale: Unscale::new(sq),
+                row: al[a] != 0.0,
+            }
+        };
+        let feature_residual = match self.up {
+            Some(_) => Residual::ImgMinusUp,
+            None => Residual::Zero,
+        };
+        let mut terms = vec![term(&self.enhanced, level.enhanced, Residual::None, 0)];
+        for (a, p, f) in [
+            (1, &self.albedo, level.albedo),
+            (2, &self.normal, level.normal),
+        ] {
+            if let (Some(p), Some(f), true) = (p, f, present[a] != 0.0) {
+                terms.push(term(p, f, feature_residual, a));
+            }
+        }
+        terms.push(term(&self.img, level.guide, Residual::None, 3));
+        if let (Some(p), Some((u, _)), true) = (&self.up, level.up, present[4] != 0.0) {
+            terms.push(term(p, u, Residual::None, 4));
+        }
+        while 3 * terms.iter().filter(|t| t.row).count() < k {
+            terms.push(Term {
+                sq: F32x::splat(0.0),
+                unscale: Unscale::Zero,
+                ..term(&self.img, level.img, Residual::None, 0)
+            });
+        }
+        terms
+    }
+}
+
+/// How a bias term adds the coarser level's residual `img(q) - up(q)`.
+#[derive(Clone, Copy)]
+pub(super) enum Residual {
+    /// Not at all (`b0`, `b3`, `b4`): adds `-0`, which leaves every value as it is.
+    None,
+    /// Feature terms at the coarsest level: `+ 0` (turns a `-0` into `+0`, as the release).
+    Zero,
+    /// Feature terms at finer levels.
+    ImgMinusUp,
+}
+
+impl Residual {
+    /// Which of `[-0, +0, residual of R, G, B]` channel `c` adds.
+    pub(super) fn addend(self, c: usize) -> usize {
+        match self {
+            Residual::None => 0,
+            Residual::Zero => 1,
+            Residual::ImgMinusUp => 2 + c,
+        }
+    }
+}
+
+/// One active bias term: `sqrt(alpha) * (src(q) - centre(p) + residual(q))` per channel.
+pub(super) struct Term<'a> {
+    pub(super) src: &'a Padded,
+    /// Unpadded planes, read at the pixel itself.
+    pub(super) centre: &'a [f32],
+    pub(super) residual: Residual,
+    /// `sqrt(alpha)`.
+    pub(super) sq: F32x,
+    pub(super) unscale: Unscale,
+    /// Whether the term has rows in the objective (false: dropped, see [`vanishing_terms`]).
+    pub(super) row: bool,
+}
+
+/// How the initial weights undo a row's `sqrt(alpha)` (the release divides).
+#[derive(Clone, Copy)]
+pub(super) enum Unscale {
+    /// A power of two: multiplying by its (exact) inverse rounds exactly as dividing does.
+    Mul(F32x),
+    Div(F32x),
+    /// A term of weight 0 (never built, kept for the release's `if s > 0` guard).
+    Zero,
+}
+
+impl Unscale {
+    pub(super) fn new(sq: f32) -> Unscale {
+        let inverse = 1.0 / sq;
+        let power_of_two = sq.is_normal() && inverse.is_normal() && sq.to_bits() & 0x007f_ffff == 0;
+        match (sq > 0.0, power_of_two) {
+            (false, _) => Unscale::Zero,
+            (true, true) => Unscale::Mul(F32x::splat(inverse)),
+            (true, false) => Unscale::Div(F32x::splat(sq)),
+        }
+    }
+}
