@@ -48,12 +48,12 @@ bin="$target/release/gdrecon"
 start=$SECONDS
 
 echo "== 1/4 validation set: every variant, runs 3 (about 10 minutes)"
-"$bin" bench "${val[@]}" --methods l2,l1,filter,gradnet --sweep --runs 3 --warmup 1 \
+"$bin" bench "${val[@]}" --methods l2,l1,frgr,gradnet --sweep --runs 3 --warmup 1 \
   "${threads[@]}" --out-dir "$out" \
   --title "Validation set: 320 x 180, six scenes, 4 / 16 / 64 spp, 4096 spp references"
 
 echo "== 2/4 1280 x 720: every method, runs 5 (about 8 minutes, the filter most of it)"
-"$bin" bench "${hd[@]}" --methods l2,l1,filter,gradnet --runs 5 --warmup 1 \
+"$bin" bench "${hd[@]}" --methods l2,l1,frgr,gradnet --runs 5 --warmup 1 \
   "${threads[@]}" --out-dir "$out/720p" \
   --title "1280 x 720, 16 spp, 256 spp references"
 

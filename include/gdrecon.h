@@ -93,13 +93,13 @@
 #define GDR_VERSION 100
 
 // Filter `"guide"`: RDFC's first pass, as the authors' release (the default).
-#define GDR_FILTER_GUIDE_RDFC 0
+#define GDR_FRGR_GUIDE_RDFC 0
 
 // Filter `"guide"`: the screened Poisson L1 reconstruction.
-#define GDR_FILTER_GUIDE_L1 1
+#define GDR_FRGR_GUIDE_L1 1
 
 // Filter `"guide"`: no pre-denoiser, the noisy colour itself (an ablation).
-#define GDR_FILTER_GUIDE_NONE 2
+#define GDR_FRGR_GUIDE_NONE 2
 
 // Status codes returned by every fallible function (`GDR_ERROR_NONE` is success).
 enum gdr_error
@@ -277,7 +277,7 @@ gdr_error gdr_context_set_log_callback(gdr_context *ctx, gdr_log_fn callback, vo
 // Committing twice is an error (`GDR_ERROR_INVALID_OPERATION`); so is setting `threads` or a path afterwards.
 gdr_error gdr_context_commit(gdr_context *ctx);
 
-// Create a filter running `method` (`"l2"`, `"l1"`, `"filter"`, `"gradnet"`, `"auto"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
+// Create a filter running `method` (`"l2"`, `"l1"`, `"frgr"`, `"gradnet"`, `"auto"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
 gdr_error gdr_filter_new(gdr_context *ctx, const char *method, gdr_filter **out);
 
 // Add a reference to `filter`; each reference is dropped by one `gdr_filter_release`.
@@ -292,7 +292,7 @@ gdr_error gdr_filter_release(gdr_filter **filter);
 // `GDR_ERROR_INVALID_ARGUMENT`, with a message that lists the names or states the range.
 gdr_error gdr_filter_set_float(gdr_filter *filter, const char *name, float value);
 
-// Set an integer parameter of the filter's method, or a choice by its index (filter `"guide"`: a `GDR_FILTER_GUIDE_*` value).
+// Set an integer parameter of the filter's method, or a choice by its index (filter `"guide"`: a `GDR_FRGR_GUIDE_*` value).
 gdr_error gdr_filter_set_int(gdr_filter *filter, const char *name, int32_t value);
 
 // Set a boolean parameter of the filter's method, or `"strict"` (NaN/Inf/negative input is an error instead of replaced).

@@ -1,4 +1,4 @@
-//! `auto` picks per frame and says why: the filter when the spp is known, GradNet when it is
+//! `auto` picks per frame and says why: FRGR (`frgr`) when the spp is known, GradNet when it is
 //! not, L1 when GradNet cannot run.
 
 use std::path::Path;
@@ -37,11 +37,11 @@ fn note(report: &Report) -> &str {
 }
 
 #[test]
-fn known_spp_runs_the_filter() {
+fn known_spp_runs_frgr() {
     let frame = sample();
     assert!(frame.spp().is_some());
     let report = run(&frame, AutoConfig::default());
-    assert_eq!(report.method, "auto -> filter");
+    assert_eq!(report.method, "auto -> frgr");
     assert!(note(&report).contains("is known"), "{}", note(&report));
 }
 

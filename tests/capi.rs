@@ -203,14 +203,14 @@ fn filter_parameters_reach_the_method() {
     let frame = frame();
     let bufs = packed_inputs(&frame);
     let ctx = context();
-    let mut config = gdrecon::recon::FilterConfig::default();
+    let mut config = gdrecon::recon::FrgrConfig::default();
     config.radius = 3;
     config.levels = 1;
     config.enhance_iterations = 0;
-    config.guide = gdrecon::recon::FilterGuide::Colour;
+    config.guide = gdrecon::recon::FrgrGuide::Colour;
     config.prefilter = true;
-    let expected = rust_output(&frame, &MethodConfig::Filter(config));
-    let f = filter(ctx, "filter");
+    let expected = rust_output(&frame, &MethodConfig::Frgr(config));
+    let f = filter(ctx, "frgr");
     let mut out = vec![0f32; W * H * 3];
     unsafe {
         ok(gdr_filter_set_float(
@@ -232,7 +232,7 @@ fn filter_parameters_reach_the_method() {
         ok(gdr_filter_set_int(
             f,
             c"guide".as_ptr(),
-            GDR_FILTER_GUIDE_NONE,
+            GDR_FRGR_GUIDE_NONE,
         ));
         let (mut r, mut l, mut e, mut g) = (0i32, 0i32, -1i32, 0i32);
         ok(gdr_filter_get_int(f, c"radius".as_ptr(), &mut r));
@@ -243,7 +243,7 @@ fn filter_parameters_reach_the_method() {
             &mut e,
         ));
         ok(gdr_filter_get_int(f, c"guide".as_ptr(), &mut g));
-        assert_eq!((r, l, e, g), (3, 1, 0, GDR_FILTER_GUIDE_NONE));
+        assert_eq!((r, l, e, g), (3, 1, 0, GDR_FRGR_GUIDE_NONE));
         set_packed(f, &bufs);
         run(f, &mut out);
         gdr_filter_release(&mut { f });

@@ -182,19 +182,19 @@ fn parameters_are_set_by_name_and_checked_against_their_range() {
         "reweight_steps=3",
     ])
     .success();
-    run(&["-m", "filter", "-p", "guide=l1", "-p", "prefilter=false"]).success();
-    run(&["-m", "auto", "-p", "l1.alpha=0.3", "-p", "filter.levels=1"]).success();
+    run(&["-m", "frgr", "-p", "guide=l1", "-p", "prefilter=false"]).success();
+    run(&["-m", "auto", "-p", "l1.alpha=0.3", "-p", "frgr.levels=1"]).success();
     for (args, needle) in [
         (
-            &["-m", "filter", "-p", "alpha=0.3"][..],
-            "unknown parameter 'alpha' for method 'filter'",
+            &["-m", "frgr", "-p", "alpha=0.3"][..],
+            "unknown parameter 'alpha' for method 'frgr'",
         ),
         (
-            &["-m", "filter", "-p", "levels=9"][..],
+            &["-m", "frgr", "-p", "levels=9"][..],
             "levels is 9, expected an integer in [1, 4]",
         ),
         (
-            &["-m", "filter", "-p", "guide=oidn"][..],
+            &["-m", "frgr", "-p", "guide=oidn"][..],
             "expected one of rdfc, l1, none",
         ),
         (&["-m", "l1", "-p", "alpha"][..], "write NAME=VALUE"),

@@ -201,12 +201,12 @@ fn published_preset_runs_its_fixed_schedule() {
 #[test]
 fn results_are_bit_identical_for_any_thread_count() {
     let frame = gdrecon::synth::synthetic_frame(97, 61, 8.0, 4);
-    let mut small = gdrecon::recon::FilterConfig::default();
+    let mut small = gdrecon::recon::FrgrConfig::default();
     small.enhance_iterations = 50;
     for config in [
         MethodConfig::PoissonL2(PoissonL2Config::default()),
         MethodConfig::PoissonL1(PoissonL1Config::default()),
-        MethodConfig::Filter(small),
+        MethodConfig::Frgr(small),
     ] {
         let run = |threads| {
             let ctx = Context::new(ContextOptions::with_threads(Some(threads))).unwrap();

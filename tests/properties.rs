@@ -126,9 +126,9 @@ proptest! {
     #[test]
     fn filter_holds_its_bound_or_asks_for_spp(frame in frame()) {
         if frame.spp().is_some() {
-            check(&frame, Method::Filter);
+            check(&frame, Method::Frgr);
         } else {
-            let e = gdrecon::recon::reconstruct(&frame, &MethodConfig::default_for(Method::Filter));
+            let e = gdrecon::recon::reconstruct(&frame, &MethodConfig::default_for(Method::Frgr));
             prop_assert!(e.unwrap_err().to_string().contains("spp"));
         }
     }

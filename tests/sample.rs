@@ -38,8 +38,8 @@ fn every_method_beats_the_base_image_on_the_sample() {
 }
 
 /// The filter's relMSE against the frame's reference, and its report as text.
-fn filter_on(frame: &gdrecon::Frame, cfg: gdrecon::recon::FilterConfig) -> (f64, String) {
-    let (out, report) = reconstruct(frame, &MethodConfig::Filter(cfg)).unwrap();
+fn filter_on(frame: &gdrecon::Frame, cfg: gdrecon::recon::FrgrConfig) -> (f64, String) {
+    let (out, report) = reconstruct(frame, &MethodConfig::Frgr(cfg)).unwrap();
     let rel = metrics::compare(&out, frame.reference().unwrap())
         .unwrap()
         .rel_mse;
@@ -50,19 +50,19 @@ fn filter_on(frame: &gdrecon::Frame, cfg: gdrecon::recon::FilterConfig) -> (f64,
 fn each_filter_stage_earns_its_place_on_the_sample() {
     // The ablations (no pre-denoiser, no gradient enhancement, one level, no feature prefilter)
     // each lose to the full filter on the sample, and say in the report what they skipped.
-    use gdrecon::recon::{FilterConfig, FilterGuide};
+    use gdrecon::recon::{FrgrConfig, FrgrGuide};
     let frame = io::read_bundle(SAMPLE, Policy::Replace).unwrap();
-    let rel = |cfg: FilterConfig| filter_on(&frame, cfg);
-    let (full, _) = rel(FilterConfig::default());
-    let with = |set: fn(&mut FilterConfig)| {
-        let mut c = FilterConfig::default();
+    let rel = |cfg: FrgrConfig| filter_on(&frame, cfg);
+    let (full, _) = rel(FrgrConfig::default());
+    let with = |set: fn(&mut FrgrConfig)| {
+        let mut c = FrgrConfig::default();
         set(&mut c);
         c
     };
     let ablations = [
         (
             "no pre-denoiser",
-            with(|c| c.guide = FilterGuide::Colour),
+            with(|c| c.guide = FrgrGuide::Colour),
             "pre-denoiser",
         ),
         (
@@ -88,12 +88,12 @@ fn each_filter_stage_earns_its_place_on_the_sample() {
 #[test]
 fn the_fast_filter_is_no_worse_than_the_reference_mode_on_the_sample() {
     // The default stops the gradient enhancement after 250 iterations, the release after 1000
-    // (`FilterConfig::reference`): on the sample 1.12260e-3 vs 1.14676e-3. The comparison over
+    // (`FrgrConfig::reference`): on the sample 1.12260e-3 vs 1.14676e-3. The comparison over
     // the 18 validation frames is in docs/benchmarks.md.
-    use gdrecon::recon::FilterConfig;
+    use gdrecon::recon::FrgrConfig;
     let frame = io::read_bundle(SAMPLE, Policy::Replace).unwrap();
-    let (fast, fast_report) = filter_on(&frame, FilterConfig::default());
-    let (literal, literal_report) = filter_on(&frame, FilterConfig::reference());
+    let (fast, fast_report) = filter_on(&frame, FrgrConfig::default());
+    let (literal, literal_report) = filter_on(&frame, FrgrConfig::reference());
     assert!(fast <= literal, "fast {fast:e} vs reference {literal:e}");
     assert!(
         fast_report.contains("enhancement 250 iterations"),

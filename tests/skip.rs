@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use gdrecon::recon::FilterConfig;
+use gdrecon::recon::FrgrConfig;
 #[cfg(all(feature = "gradnet", feature = "embed-model"))]
 use gdrecon::recon::GradNetConfig;
 use gdrecon::{
@@ -74,7 +74,7 @@ fn stage(report: &Report, prefix: &str) -> f64 {
 #[test]
 fn filter_skips_empty_windows_in_the_qp() {
     let frame = half_empty(320);
-    let (out, report) = run(&frame, MethodConfig::Filter(FilterConfig::default()));
+    let (out, report) = run(&frame, MethodConfig::Frgr(FrgrConfig::default()));
     let skipped: Vec<&String> = report
         .skipped
         .iter()
@@ -84,7 +84,7 @@ fn filter_skips_empty_windows_in_the_qp() {
     // The 9 x 9 window of the 4 columns next to the content reaches it; further left is empty.
     assert!(left_is_black(&out, 300));
     println!(
-        "filter on 640 x 180, left half empty: qp {:.3} s; {:?}",
+        "frgr on 640 x 180, left half empty: qp {:.3} s; {:?}",
         stage(&report, "qp"),
         skipped
     );
@@ -104,7 +104,7 @@ fn sample_at(spp: f32) -> Frame {
 
 #[test]
 fn filter_drops_qp_terms_whose_weight_vanishes_at_very_high_spp() {
-    let config = MethodConfig::Filter(FilterConfig::default());
+    let config = MethodConfig::Frgr(FrgrConfig::default());
     let (_, report) = run(&sample_at(16.0), config.clone());
     assert!(
         !report.skipped.iter().any(|s| s.contains("vanishes")),
@@ -123,7 +123,7 @@ fn filter_drops_qp_terms_whose_weight_vanishes_at_very_high_spp() {
 
 #[test]
 fn filter_without_features_skips_their_terms_and_prefilter() {
-    let config = MethodConfig::Filter(FilterConfig::default());
+    let config = MethodConfig::Frgr(FrgrConfig::default());
     let (_, with) = run(&sample(), config.clone());
     assert!(stage(&with, "feature prefilter") > 0.0, "{:?}", with.stages);
     assert!(!with.skipped.iter().any(|s| s.contains("prefilter")));
@@ -209,10 +209,10 @@ fn right_is_base(out: &Image, frame: &Frame, from: usize) -> bool {
 #[test]
 fn filter_keeps_converged_pixels() {
     let frame = half_converged();
-    let (out, report) = run(&frame, MethodConfig::Filter(FilterConfig::default()));
+    let (out, report) = run(&frame, MethodConfig::Frgr(FrgrConfig::default()));
     let note = skipped(&report, "converged pixels");
     println!(
-        "filter on 640 x 180, right half converged: qp {:.3} s; {note}",
+        "frgr on 640 x 180, right half converged: qp {:.3} s; {note}",
         stage(&report, "qp")
     );
     assert!(right_is_base(&out, &frame, 320));

@@ -167,7 +167,7 @@ fn every_method_survives_every_case_within_the_bound() {
             .fold(0.0, f64::max);
         for method in Method::ALL.into_iter().filter(|m| m.is_built()) {
             let config = MethodConfig::default_for(method);
-            if method == Method::Filter && frame.spp().is_none() {
+            if method == Method::Frgr && frame.spp().is_none() {
                 // The filter's weights depend on the sample count: it must ask for it.
                 let e = reconstruct(&frame, &config).unwrap_err();
                 assert!(

@@ -212,7 +212,7 @@ fn garbage_features_leave_the_filter_finite() {
         .unwrap();
     let (out, report) = gdrecon::recon::reconstruct(
         &frame,
-        &gdrecon::MethodConfig::default_for(gdrecon::Method::Filter),
+        &gdrecon::MethodConfig::default_for(gdrecon::Method::Frgr),
     )
     .unwrap();
     assert!(out.all_finite());

@@ -47,15 +47,15 @@ struct State {
 const TEST_PANIC: &str = "internal_test_panic";
 
 /// Filter `"guide"`: RDFC's first pass, as the authors' release (the default).
-pub const GDR_FILTER_GUIDE_RDFC: i32 = 0;
+pub const GDR_FRGR_GUIDE_RDFC: i32 = 0;
 /// Filter `"guide"`: the screened Poisson L1 reconstruction.
-pub const GDR_FILTER_GUIDE_L1: i32 = 1;
+pub const GDR_FRGR_GUIDE_L1: i32 = 1;
 /// Filter `"guide"`: no pre-denoiser, the noisy colour itself (an ablation).
-pub const GDR_FILTER_GUIDE_NONE: i32 = 2;
+pub const GDR_FRGR_GUIDE_NONE: i32 = 2;
 
 // The C constants are the indices of the guide choice in the filter's parameter table.
 const _: () = {
-    assert!(GDR_FILTER_GUIDE_RDFC == 0 && GDR_FILTER_GUIDE_L1 == 1 && GDR_FILTER_GUIDE_NONE == 2);
+    assert!(GDR_FRGR_GUIDE_RDFC == 0 && GDR_FRGR_GUIDE_L1 == 1 && GDR_FRGR_GUIDE_NONE == 2);
 };
 
 impl State {
@@ -201,7 +201,7 @@ fn lock(f: &gdr_filter) -> CResult<MutexGuard<'_, State>> {
     }
 }
 
-/// Create a filter running `method` (`"l2"`, `"l1"`, `"filter"`, `"gradnet"`, `"auto"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
+/// Create a filter running `method` (`"l2"`, `"l1"`, `"frgr"`, `"gradnet"`, `"auto"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_new(
     ctx: *mut gdr_context,
@@ -283,7 +283,7 @@ pub unsafe extern "C" fn gdr_filter_set_float(
     })
 }
 
-/// Set an integer parameter of the filter's method, or a choice by its index (filter `"guide"`: a `GDR_FILTER_GUIDE_*` value).
+/// Set an integer parameter of the filter's method, or a choice by its index (filter `"guide"`: a `GDR_FRGR_GUIDE_*` value).
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_set_int(
     filter: *mut gdr_filter,

@@ -93,7 +93,7 @@ pub(crate) fn frame_params() -> [ParamInfo; 2] {
             range: Range::closed(0.0, f64::from(f32::MAX)),
             choices: &[],
             default: Value::Float(0.0),
-            doc: "Samples per pixel of the base image; 0 = unknown (the filter method needs it)",
+            doc: "Samples per pixel of the base image; 0 = unknown (frgr needs it)",
         },
         ParamInfo {
             name: "strict".to_owned(),

@@ -1,10 +1,10 @@
 //! `auto`: picks a method per frame from what the frame carries, and says why.
 //!
 //! The rule, from the validation set (six scenes at 4, 16 and 64 spp; `docs/benchmarks.md`):
-//! 1. **spp known → `filter`** (RDFC guide). It has the lowest geometric-mean relMSE at 4 and
-//!    16 spp and is within 6 % of the best (the same filter with an L1 guide) at 64 spp, and it
+//! 1. **spp known → `frgr`** (RDFC guide). It has the lowest geometric-mean relMSE at 4 and
+//!    16 spp and is within 6 % of the best (the same method with an L1 guide) at 64 spp, and it
 //!    is the only method that is never far off on any scene (caustics included). A missing
-//!    variance layer is estimated by the filter itself (3 x 3 colour statistics; noted).
+//!    variance layer is estimated by FRGR itself (3 x 3 colour statistics; noted).
 //! 2. **spp unknown → `gradnet`**, which needs no sample count: on the validation set it is 0.54x
 //!    L1 at 4 spp and on par at 16 spp. The frame's features decide the model (with or without
 //!    the feature branch).
@@ -16,7 +16,7 @@
 
 use super::param::{ParamInfo, Settings, Value};
 use super::{
-    FilterConfig, GradNetConfig, Method, MethodConfig, PoissonL1Config, Reconstructor, Register,
+    FrgrConfig, GradNetConfig, Method, MethodConfig, PoissonL1Config, Reconstructor, Register,
 };
 use crate::context::Context;
 use crate::error::Result;
@@ -30,7 +30,7 @@ use crate::report::Report;
 #[non_exhaustive]
 pub struct AutoConfig {
     /// Used when the frame has its spp.
-    pub filter: FilterConfig,
+    pub frgr: FrgrConfig,
     /// Used when it has not, if GradNet can run.
     pub gradnet: GradNetConfig,
     /// The fallback.
@@ -42,14 +42,14 @@ impl AutoConfig {
     pub fn choose(&self, frame: &Frame) -> (MethodConfig, String) {
         match frame.spp() {
             Some(spp) => (
-                MethodConfig::Filter(self.filter),
+                MethodConfig::Frgr(self.frgr),
                 format!(
-                    "spp {spp} is known: filter (lowest validation relMSE at 4 and 16 spp, \
+                    "spp {spp} is known: frgr (lowest validation relMSE at 4 and 16 spp, \
                      within 6 % of the best at 64){}",
                     if frame.variance().is_some() {
                         ""
                     } else {
-                        "; no variance layer: the filter estimates it"
+                        "; no variance layer: frgr estimates it"
                     }
                 ),
             ),
@@ -71,11 +71,11 @@ impl AutoConfig {
     }
 }
 
-/// `auto`'s parameters are those of the methods it chooses between, named `filter.radius`,
+/// `auto`'s parameters are those of the methods it chooses between, named `frgr.radius`,
 /// `gradnet.tile_size`, `l1.alpha`, ...
 impl Settings for AutoConfig {
     fn infos(prefix: &str) -> Vec<ParamInfo> {
-        let mut all = FilterConfig::infos(&format!("{prefix}filter."));
+        let mut all = FrgrConfig::infos(&format!("{prefix}frgr."));
         all.extend(GradNetConfig::infos(&format!("{prefix}gradnet.")));
         all.extend(PoissonL1Config::infos(&format!("{prefix}l1.")));
         all
@@ -83,7 +83,7 @@ impl Settings for AutoConfig {
 
     fn read(&self, name: &str) -> Option<Value> {
         match name.split_once('.')? {
-            ("filter", rest) => self.filter.read(rest),
+            ("frgr", rest) => self.frgr.read(rest),
             ("gradnet", rest) => self.gradnet.read(rest),
             ("l1", rest) => self.l1.read(rest),
             _ => None,
@@ -92,7 +92,7 @@ impl Settings for AutoConfig {
 
     fn write(&mut self, name: &str, value: Value) -> bool {
         match name.split_once('.') {
-            Some(("filter", rest)) => self.filter.write(rest, value),
+            Some(("frgr", rest)) => self.frgr.write(rest, value),
             Some(("gradnet", rest)) => self.gradnet.write(rest, value),
             Some(("l1", rest)) => self.l1.write(rest, value),
             _ => false,

@@ -21,7 +21,7 @@ pub mod converged;
 #[cfg(feature = "testing")]
 pub mod copy;
 mod dct;
-pub mod filter;
+pub mod frgr;
 pub mod gradnet;
 mod ops;
 pub mod param;
@@ -36,7 +36,7 @@ use rayon::prelude::*;
 pub use auto::AutoConfig;
 #[cfg(feature = "testing")]
 pub use copy::CopyConfig;
-pub use filter::{FilterConfig, FilterGuide};
+pub use frgr::{FrgrConfig, FrgrGuide};
 pub use gradnet::GradNetConfig;
 pub use param::{Kind, ParamInfo, Range, Value};
 pub use poisson_l1::PoissonL1Config;
@@ -217,12 +217,12 @@ registry! {
         "Screened Poisson, L2, solved exactly by two 2-D DCTs";
     PoissonL1(PoissonL1Config) = "l1",
         "Screened Poisson, group L1, by IRLS with DCT-preconditioned CG";
-    Filter(FilterConfig) = "filter",
-        "Gradient-guided filtering, FRGR (Yan et al. 2024); needs the frame's spp";
+    Frgr(FrgrConfig) = "frgr",
+        "Filtering-based reconstruction, FRGR (Yan et al. 2024); needs the frame's spp";
     GradNet(GradNetConfig) = "gradnet",
         "GradNet (Guo et al. 2019) through ONNX Runtime, loaded at run time";
     Auto(AutoConfig) = "auto",
-        "Picks filter, gradnet or l1 per frame from its spp and layers, and says why";
+        "Picks frgr, gradnet or l1 per frame from its spp and layers, and says why";
     #[cfg(feature = "testing")]
     Copy(CopyConfig) = "copy",
         "Test-only: the base image scaled by a gain (shows how a method is registered)";

@@ -108,8 +108,8 @@ impl RuntimeArgs {
 /// Method selection and settings of `reconstruct`.
 #[derive(Args, Clone, Debug)]
 pub(crate) struct MethodArgs {
-    /// Reconstruction method: l2, l1, filter, gradnet or auto (`gdrecon params` lists each
-    /// one; the filter needs spp, from the file or --spp; gradnet needs ONNX Runtime).
+    /// Reconstruction method: l2, l1, frgr, gradnet or auto (`gdrecon params` lists each
+    /// one; frgr needs spp, from the file or --spp; gradnet needs ONNX Runtime).
     #[arg(long, short, default_value = "l2")]
     method: String,
     /// Start from one of the method's presets (`gdrecon params METHOD` lists them), e.g.

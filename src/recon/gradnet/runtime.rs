@@ -62,7 +62,7 @@ pub(crate) fn runtime(explicit: Option<&Path>) -> Result<&'static Runtime> {
          Tried, in order:\n{}\nInstall it with `bash onnx/setup.sh` (the project's Python \
          environment, onnxruntime 1.31.1), or `pip install onnxruntime==1.31.1` and point \
          ORT_DYLIB_PATH at its onnxruntime/capi/libonnxruntime.so.1.31.1. The other methods \
-         (l2, l1, filter) do not need it.",
+         (l2, l1, frgr) do not need it.",
         tried
             .iter()
             .enumerate()

@@ -46,7 +46,7 @@ pub struct BenchArgs {
     #[arg(long, long_help = sweep_help())]
     sweep: bool,
     /// Comma-separated variants METHOD[:PRESET][:NAME=VALUE...] instead of --methods, e.g.
-    /// `l2,l1:reweight_steps=5:cg_tolerance=0,filter:guide=l1,gradnet:use_features=false`;
+    /// `l2,l1:reweight_steps=5:cg_tolerance=0,frgr:guide=l1,gradnet:use_features=false`;
     /// `gdrecon params` lists every method's parameters and presets.
     #[arg(long, conflicts_with_all = ["sweep", "methods"])]
     settings: Option<String>,

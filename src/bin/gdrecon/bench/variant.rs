@@ -1,5 +1,5 @@
 //! Named method variants: `METHOD[:OPTION[:OPTION...]]`, e.g. `l1:reweight_steps=5`,
-//! `l1:published` or `filter:guide=l1:levels=1`.
+//! `l1:published` or `frgr:guide=l1:levels=1`.
 //!
 //! An option is a parameter of the method, `NAME=VALUE`, or one of its presets; both come
 //! from the method's parameter table (`gdrecon params` lists them), so a new parameter or
@@ -12,7 +12,7 @@ use crate::RuntimeArgs;
 /// One method at one group of settings, as timed and reported by `bench`.
 #[derive(Clone, Debug)]
 pub struct Variant {
-    /// The method's CLI name (`l2`, `l1`, `filter`, `gradnet`).
+    /// The method's CLI name (`l2`, `l1`, `frgr`, `gradnet`).
     pub method: String,
     /// The options after the method name (`reweight_steps=5`), or `default`.
     pub setting: String,

@@ -7,7 +7,7 @@ use rayon::prelude::*;
 
 use super::{QpLevel, Skipped, MAX_K, MAX_N};
 use crate::image::Image;
-use crate::recon::filter::util::reflect;
+use crate::recon::frgr::util::reflect;
 
 /// The state of one simplex QP solve, `Q = B^T B + diag(v)`.
 pub(crate) struct Simplex<'a> {

@@ -33,7 +33,7 @@ use crate::validate::Policy;
 /// gradient enhancement).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[non_exhaustive]
-pub enum FilterGuide {
+pub enum FrgrGuide {
     /// RDFC's first pass, as the authors' release does (the reference mode).
     Rdfc,
     /// Our screened Poisson L1 reconstruction: cheaper and, on the bundled sample, a better
@@ -44,31 +44,27 @@ pub enum FilterGuide {
     Colour,
 }
 
-impl FilterGuide {
-    /// Every guide, in the order of their names and C indices (`GDR_FILTER_GUIDE_*`).
-    pub const ALL: [FilterGuide; 3] = [
-        FilterGuide::Rdfc,
-        FilterGuide::PoissonL1,
-        FilterGuide::Colour,
-    ];
+impl FrgrGuide {
+    /// Every guide, in the order of their names and C indices (`GDR_FRGR_GUIDE_*`).
+    pub const ALL: [FrgrGuide; 3] = [FrgrGuide::Rdfc, FrgrGuide::PoissonL1, FrgrGuide::Colour];
     /// Their names, by index.
     pub const NAMES: &'static [&'static str] = &["rdfc", "l1", "none"];
 
-    /// The guide's index in [`FilterGuide::ALL`].
+    /// The guide's index in [`FrgrGuide::ALL`].
     pub fn index(self) -> usize {
         match self {
-            FilterGuide::Rdfc => 0,
-            FilterGuide::PoissonL1 => 1,
-            FilterGuide::Colour => 2,
+            FrgrGuide::Rdfc => 0,
+            FrgrGuide::PoissonL1 => 1,
+            FrgrGuide::Colour => 2,
         }
     }
 }
 
-/// Settings of the filter method; names, defaults and ranges are in its parameter table
+/// Settings of FRGR (`frgr`); names, defaults and ranges are in its parameter table
 /// below (listed in `docs/PARAMETERS.md`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[non_exhaustive]
-pub struct FilterConfig {
+pub struct FrgrConfig {
     /// Filter window radius.
     pub radius: usize,
     /// Resolution levels, each 2x coarser, linked by guided linear upsampling.
@@ -76,35 +72,35 @@ pub struct FilterConfig {
     /// Gradient-enhancement iterations; 0 skips the enhancement.
     pub enhance_iterations: u32,
     /// The pre-denoiser.
-    pub guide: FilterGuide,
+    pub guide: FrgrGuide,
     /// Prefilter albedo and normal before every stage reads them.
     pub prefilter: bool,
 }
 
-impl Default for FilterConfig {
+impl Default for FrgrConfig {
     fn default() -> Self {
-        FilterConfig {
+        FrgrConfig {
             radius: 4,
             levels: 2,
             enhance_iterations: 250,
-            guide: FilterGuide::Rdfc,
+            guide: FrgrGuide::Rdfc,
             prefilter: true,
         }
     }
 }
 
-impl FilterConfig {
+impl FrgrConfig {
     /// The release's settings, literally: the reference mode (1000 enhancement iterations),
     /// kept for comparison with the default fast mode.
     pub fn reference() -> Self {
-        FilterConfig {
+        FrgrConfig {
             enhance_iterations: REFERENCE_ENHANCE_ITERATIONS,
-            ..FilterConfig::default()
+            ..FrgrConfig::default()
         }
     }
 }
 
-impl Params for FilterConfig {
+impl Params for FrgrConfig {
     const TABLE: &'static [Param<Self>] = &[
         Param::int(
             "radius",
@@ -137,11 +133,11 @@ impl Params for FilterConfig {
         ),
         Param::choice(
             "guide",
-            FilterGuide::NAMES,
+            FrgrGuide::NAMES,
             "The pre-denoised guide: RDFC (the release), our L1 reconstruction, or none (the \
              noisy colour, an ablation)",
             |c| c.guide.index(),
-            |c, v| c.guide = FilterGuide::ALL[v],
+            |c, v| c.guide = FrgrGuide::ALL[v],
         ),
         Param::bool(
             "prefilter",
@@ -155,11 +151,11 @@ impl Params for FilterConfig {
     const PRESETS: &'static [Preset<Self>] = &[Preset {
         name: "reference",
         doc: "the release's schedule literally: 1000 gradient-enhancement iterations",
-        config: FilterConfig::reference,
+        config: FrgrConfig::reference,
     }];
 }
 
-impl Register for FilterConfig {
+impl Register for FrgrConfig {
     const SWEEP: &'static [&'static str] = &[
         "",
         "reference",
@@ -176,27 +172,27 @@ impl Register for FilterConfig {
         width: usize,
         height: usize,
     ) -> Result<Box<dyn Reconstructor>> {
-        Ok(Box::new(Filter::new(*self, width, height)?))
+        Ok(Box::new(Frgr::new(*self, width, height)?))
     }
 }
 
 /// The release's gradient-enhancement iterations.
 const REFERENCE_ENHANCE_ITERATIONS: u32 = 1000;
 
-/// Largest input magnitude the filter runs at; larger frames are scaled down.
+/// Largest input magnitude FRGR runs at; larger frames are scaled down.
 const LIMIT: f32 = 1e6;
 
-/// The filter method planned for one size.
-pub(crate) struct Filter {
-    cfg: FilterConfig,
+/// FRGR planned for one size.
+pub(crate) struct Frgr {
+    cfg: FrgrConfig,
 }
 
-impl Filter {
-    /// Plans the filter for `width` x `height` frames (the size is not used yet: every
+impl Frgr {
+    /// Plans FRGR for `width` x `height` frames (the size is not used yet: every
     /// buffer is still allocated per execution).
-    pub(crate) fn new(config: FilterConfig, _width: usize, _height: usize) -> Result<Self> {
+    pub(crate) fn new(config: FrgrConfig, _width: usize, _height: usize) -> Result<Self> {
         param::validate(&config)?;
-        Ok(Filter { cfg: config })
+        Ok(Frgr { cfg: config })
     }
 }
 
@@ -276,7 +272,7 @@ fn pad_gradients<'a>(dx: &'a Image, dy: &'a Image) -> (Cow<'a, Image>, Cow<'a, I
     (px, py)
 }
 
-impl Filter {
+impl Frgr {
     /// Filters one level, recursing into a 2x coarser one (GLU) while `levels > 1`; returns
     /// the result and its variance.
     fn run_level(
@@ -405,9 +401,9 @@ impl Filter {
     }
 }
 
-impl Reconstructor for Filter {
+impl Reconstructor for Frgr {
     fn method(&self) -> Method {
-        Method::Filter
+        Method::Frgr
     }
 
     fn reconstruct_into(
@@ -419,7 +415,7 @@ impl Reconstructor for Filter {
     ) -> Result<()> {
         let spp = frame.spp().ok_or_else(|| {
             Error::input(
-                "the filter method needs the samples per pixel: the frame has no spp \
+                "frgr needs the samples per pixel: the frame has no spp \
                  (set it, e.g. --spp N)",
             )
         })?;
@@ -487,10 +483,10 @@ impl Reconstructor for Filter {
         };
         progress.update(0.05)?;
         let guide = match self.cfg.guide {
-            FilterGuide::Rdfc => report.time("rdfc", || {
+            FrgrGuide::Rdfc => report.time("rdfc", || {
                 rdfc::rdfc(colour, &var, albedo.as_deref(), normal.as_deref())
             }),
-            FilterGuide::PoissonL1 => report.time("l1 guide", || {
+            FrgrGuide::PoissonL1 => report.time("l1 guide", || {
                 // The Poisson guide sees the gradients as given (before outlier removal).
                 let clean = FrameBuilder::new()
                     .image(Layer::Color, colour.clone())
@@ -504,7 +500,7 @@ impl Reconstructor for Filter {
                 l1.reconstruct_into(&clean, &mut out, &mut sub, &Progress::none())?;
                 Ok::<_, Error>(out)
             })?,
-            FilterGuide::Colour => {
+            FrgrGuide::Colour => {
                 report.skip("pre-denoiser (guide: the noisy colour)");
                 colour.clone()
             }

@@ -4,7 +4,7 @@
 use super::lanes::F32x;
 use super::level::QpLevel;
 use crate::image::Image;
-use crate::recon::filter::util::reflect;
+use crate::recon::frgr::util::reflect;
 
 /// Image rows per band. A band pads its own rows (plus the windows' halo) of every plane it
 /// reads, so that the padded copies stay small whatever the frame size.
