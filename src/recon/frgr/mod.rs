@@ -183,17 +183,55 @@ const REFERENCE_ENHANCE_ITERATIONS: u32 = 1000;
 const LIMIT: f32 = 1e6;
 
 /// FRGR planned for one size.
+///
+/// What depends on the size alone is made here: the level pyramid's sizes, the gradient
+/// buffers that outlier removal writes, and with the L1 guide its planned solve (DCT plans,
+/// IRLS buffers) and output. The stages' intermediate images (RDFC, GLU, enhancement, QP)
+/// are still allocated per execution.
 pub(crate) struct Frgr {
     cfg: FrgrConfig,
+    /// Sizes of the levels that run, finest first.
+    levels: Vec<(usize, usize)>,
+    /// The gradients with outliers removed, rewritten per execution.
+    dx: Image,
+    dy: Image,
+    /// With the L1 guide: its planned solve and the image it writes.
+    l1: Option<(PoissonL1, Image)>,
 }
 
 impl Frgr {
-    /// Plans FRGR for `width` x `height` frames (the size is not used yet: every
-    /// buffer is still allocated per execution).
-    pub(crate) fn new(config: FrgrConfig, _width: usize, _height: usize) -> Result<Self> {
+    /// Plans FRGR for `width` x `height` frames.
+    pub(crate) fn new(config: FrgrConfig, width: usize, height: usize) -> Result<Self> {
         param::validate(&config)?;
-        Ok(Frgr { cfg: config })
+        let l1 = match config.guide {
+            FrgrGuide::PoissonL1 => Some((
+                PoissonL1::new(PoissonL1Config::default(), width, height)?,
+                Image::zeros(3, width, height),
+            )),
+            FrgrGuide::Rdfc | FrgrGuide::Colour => None,
+        };
+        Ok(Frgr {
+            levels: level_sizes(width, height, config.levels),
+            cfg: config,
+            dx: Image::zeros(3, width, height),
+            dy: Image::zeros(3, width, height),
+            l1,
+        })
     }
+}
+
+/// The sizes of the levels FRGR runs on a `width` x `height` frame with at most `levels`:
+/// each is the previous one padded to even sides and halved, while the previous one's shorter
+/// side is at least [`MIN_LEVEL_SIDE`].
+fn level_sizes(width: usize, height: usize, levels: usize) -> Vec<(usize, usize)> {
+    let mut sizes = vec![(width, height)];
+    while let Some(&(w, h)) = sizes.last() {
+        if sizes.len() >= levels || w.min(h) < MIN_LEVEL_SIDE {
+            break;
+        }
+        sizes.push(((w + w % 2) / 2, (h + h % 2) / 2));
+    }
+    sizes
 }
 
 /// Per-pixel variance estimate when the frame has none: the sample variance of the 3 x 3
@@ -231,11 +269,11 @@ fn scaled(img: &Image, s: f32) -> Cow<'_, Image> {
 struct LevelInputs<'a> {
     colour: Cow<'a, Image>,
     var: Image,
-    dx: Image,
-    dy: Image,
+    dx: Cow<'a, Image>,
+    dy: Cow<'a, Image>,
     albedo: Option<Cow<'a, Image>>,
     normal: Option<Cow<'a, Image>>,
-    guide: Image,
+    guide: Cow<'a, Image>,
     /// Pixels already converged (finest level only): the QP returns their colour.
     converged: Option<Vec<bool>>,
 }
@@ -273,18 +311,22 @@ fn pad_gradients<'a>(dx: &'a Image, dy: &'a Image) -> (Cow<'a, Image>, Cow<'a, I
 }
 
 impl Frgr {
-    /// Filters one level, recursing into a 2x coarser one (GLU) while `levels > 1`; returns
-    /// the result and its variance.
+    /// Filters level `depth` of the planned pyramid, recursing into the next coarser one (GLU)
+    /// if there is one; returns the result and its variance.
     fn run_level(
         &self,
         inp: &LevelInputs,
-        levels: usize,
         spp: f32,
         depth: usize,
         report: &mut Report,
     ) -> (Image, Image) {
         let (w, h) = inp.colour.size();
-        let up = if levels > 1 && w.min(h) >= MIN_LEVEL_SIDE {
+        assert_eq!(
+            (w, h),
+            self.levels[depth],
+            "level {depth} has its planned size"
+        );
+        let up = if depth + 1 < self.levels.len() {
             let pad = glu::pad_even;
             let guide = pad(&inp.guide);
             let (albedo, normal) = (
@@ -312,14 +354,14 @@ impl Frgr {
             let coarse = LevelInputs {
                 colour: Cow::Owned(fit.downsample(&pad(&inp.colour), false)),
                 var: fit.downsample(&pad(&inp.var), true),
-                dx: cdx,
-                dy: cdy,
+                dx: Cow::Owned(cdx),
+                dy: Cow::Owned(cdy),
                 albedo: albedo.map(|a| Cow::Owned(fit.downsample(&a, false))),
                 normal: normal.map(|f| Cow::Owned(fit.downsample(&f, false))),
-                guide: fit.downsample(&guide, false),
+                guide: Cow::Owned(fit.downsample(&guide, false)),
                 converged: None,
             };
-            let (r, v) = self.run_level(&coarse, levels - 1, spp, depth + 1, report);
+            let (r, v) = self.run_level(&coarse, spp, depth + 1, report);
             let (u, uv) = fit.upsample(&r, Some(&v));
             let uv = uv.expect("variance requested");
             Some((glu::crop(u, w, h), glu::crop(uv, w, h)))
@@ -330,7 +372,7 @@ impl Frgr {
             if depth == 0 {
                 report.skip("gradient enhancement (0 iterations): the guide stands in");
             }
-            Cow::Borrowed(&inp.guide)
+            Cow::Borrowed(&*inp.guide)
         } else {
             let lambda = 8.0 / spp.sqrt();
             let (enhanced, outcome) = report.time(&format!("enhance (level {depth})"), || {
@@ -439,10 +481,12 @@ impl Reconstructor for Frgr {
         }
         let colour = scaled(frame.color(), scale);
         let colour = &*colour;
-        let (mut dx, mut dy) = (
-            scaled(frame.dx(), scale).into_owned(),
-            scaled(frame.dy(), scale).into_owned(),
-        );
+        // The plan's gradient buffers: the frame's gradients, then outlier removal in place.
+        let (dx, dy) = (&mut self.dx, &mut self.dy);
+        dx.as_mut_slice()
+            .copy_from_slice(scaled(frame.dx(), scale).as_slice());
+        dy.as_mut_slice()
+            .copy_from_slice(scaled(frame.dy(), scale).as_slice());
         let var_in = frame.variance().map(|v| scaled(v, scale * scale));
         let var = match var_in.as_ref() {
             // Renderers estimate the variance of the mean from few passes (ours: 4), so the
@@ -455,9 +499,9 @@ impl Reconstructor for Frgr {
             }
         };
         let removed = report.time("outliers", || {
-            let n = outliers::remove_outliers(&mut dx) + outliers::remove_outliers(&mut dy);
-            outliers::zero_boundary(&mut dx, true);
-            outliers::zero_boundary(&mut dy, false);
+            let n = outliers::remove_outliers(dx) + outliers::remove_outliers(dy);
+            outliers::zero_boundary(dx, true);
+            outliers::zero_boundary(dy, false);
             n
         });
         report.note(format!("gradient outliers replaced: {removed}"));
@@ -483,40 +527,38 @@ impl Reconstructor for Frgr {
         };
         progress.update(0.05)?;
         let guide = match self.cfg.guide {
-            FrgrGuide::Rdfc => report.time("rdfc", || {
+            FrgrGuide::Rdfc => Cow::Owned(report.time("rdfc", || {
                 rdfc::rdfc(colour, &var, albedo.as_deref(), normal.as_deref())
-            }),
-            FrgrGuide::PoissonL1 => report.time("l1 guide", || {
-                // The Poisson guide sees the gradients as given (before outlier removal).
-                let clean = FrameBuilder::new()
-                    .image(Layer::Color, colour.clone())
-                    .image(Layer::Dx, scaled(frame.dx(), scale).into_owned())
-                    .image(Layer::Dy, scaled(frame.dy(), scale).into_owned())
-                    .build(Policy::Replace)?;
-                let (w, h) = colour.size();
-                let mut l1 = PoissonL1::new(PoissonL1Config::default(), w, h)?;
-                let mut out = Image::zeros(3, w, h);
-                let mut sub = Report::default();
-                l1.reconstruct_into(&clean, &mut out, &mut sub, &Progress::none())?;
-                Ok::<_, Error>(out)
-            })?,
+            })),
+            FrgrGuide::PoissonL1 => report
+                .time("l1 guide", || {
+                    // The Poisson guide sees the gradients as given (before outlier removal).
+                    let clean = FrameBuilder::new()
+                        .image(Layer::Color, colour.clone())
+                        .image(Layer::Dx, scaled(frame.dx(), scale).into_owned())
+                        .image(Layer::Dy, scaled(frame.dy(), scale).into_owned())
+                        .build(Policy::Replace)?;
+                    let (l1, out) = self.l1.as_mut().expect("the L1 guide is planned");
+                    l1.reconstruct_into(&clean, out, &mut Report::default(), &Progress::none())
+                })
+                .map(|()| Cow::Borrowed(&self.l1.as_ref().expect("the L1 guide is planned").1))?,
             FrgrGuide::Colour => {
                 report.skip("pre-denoiser (guide: the noisy colour)");
-                colour.clone()
+                Cow::Borrowed(colour)
             }
         };
         progress.update(0.4)?;
         let inputs = LevelInputs {
             colour: Cow::Borrowed(colour),
             var,
-            dx,
-            dy,
+            dx: Cow::Borrowed(&self.dx),
+            dy: Cow::Borrowed(&self.dy),
             albedo,
             normal,
             guide,
             converged: converged_mask(frame),
         };
-        let (filtered, _variance) = self.run_level(&inputs, self.cfg.levels, spp, 0, report);
+        let (filtered, _variance) = self.run_level(&inputs, spp, 0, report);
         for (o, &v) in out.as_mut_slice().iter_mut().zip(filtered.as_slice()) {
             *o = v / scale;
         }
