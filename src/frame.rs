@@ -1,6 +1,6 @@
 //! The frame: what a gradient-domain renderer hands to gdrecon.
 //!
-//! # Conventions (stated once here, shared by every method, the CLI and the C ABI)
+//! # Conventions (the contract is docs/CONVENTIONS.md; these are the ones every method relies on)
 //! - Images are row-major, `y` grows downward and `x` to the right; pixel `(x, y)`.
 //! - Gradients are forward differences: `dx(x, y) = I(x+1, y) - I(x, y)` and
 //!   `dy(x, y) = I(x, y+1) - I(x, y)`. The last column of `dx` and the last row of `dy` carry

@@ -1,4 +1,4 @@
-//! Frame bundles on disk: round trips, the variants CONVENTIONS.md says readers accept, and a
+//! Frame bundles on disk: round trips, the variants docs/CONVENTIONS.md says readers accept, and a
 //! clear error for each kind of bad file.
 
 mod common;

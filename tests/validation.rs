@@ -1,4 +1,4 @@
-//! The bad-input policy of CONVENTIONS.md, one test per case.
+//! The bad-input policy of docs/CONVENTIONS.md, one test per case.
 
 mod common;
 

@@ -1,4 +1,4 @@
-//! Small helpers shared by the filter's stages: borders, luminance, planes.
+//! Small helpers shared by FRGR's stages: borders, luminance, planes.
 
 use rayon::prelude::*;
 
