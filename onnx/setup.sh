@@ -13,6 +13,9 @@
 #
 # Idempotent: the venv carries a stamp (hash of the requirements files + mode + interpreter);
 # when it matches, nothing is installed. pip's download cache (~/.cache/pip) is used as usual.
+# The project's package onnx/gdrecon_py is installed in editable mode (no dependencies, no
+# download when the venv has setuptools) unless the venv already imports it from this checkout,
+# so its scripts run as `$GDRECON_PYTHON -m gdrecon_py.<module>` from any directory.
 # System package: libllvm19 (needed by Mitsuba's llvm_* variants) is apt-installed only if
 # missing; sudo is used only when not root.
 set -euo pipefail
@@ -28,7 +31,7 @@ while [ $# -gt 0 ]; do
     --venv) venv="$2"; shift ;;
     --python) py="$2"; shift ;;
     --force) force=1 ;;
-    -h|--help) sed -n '2,18p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,20p' "$0"; exit 0 ;;
     *) echo "setup.sh: unknown option '$1' (see --help)" >&2; exit 2 ;;
   esac
   shift
@@ -105,7 +108,25 @@ else
   echo "$mode $want_hash" > "$stamp"
 fi
 
-# --- 3. smoke test and the environment to export -----------------------------------------------
+# --- 3. the project's package, editable (onnx/pyproject.toml: onnx/gdrecon_py) -----------------
+# -I: neither the current directory nor PYTHONPATH may make it look installed
+pkg_home() {
+  "$venv/bin/python" -I -c 'import os, gdrecon_py; print(os.path.dirname(os.path.dirname(os.path.realpath(gdrecon_py.__file__))))' 2>/dev/null || true
+}
+here_real="$(cd "$here" && pwd -P)"
+if [ $force = 0 ] && [ "$(pkg_home)" = "$here_real" ]; then
+  log "gdrecon_py already installed (editable, $here_real)"
+else
+  log "installing gdrecon_py (editable, $here_real) into $venv"
+  if "$venv/bin/python" -I -c 'import setuptools' 2>/dev/null; then
+    "$venv/bin/python" -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e "$here_real"
+  else
+    "$venv/bin/python" -m pip install --disable-pip-version-check -q --no-deps -e "$here_real"
+  fi
+  [ "$(pkg_home)" = "$here_real" ] || { log "ERROR: gdrecon_py is not importable from $here_real after the install"; exit 1; }
+fi
+
+# --- 4. smoke test and the environment to export -----------------------------------------------
 export DRJIT_LIBLLVM_PATH="${DRJIT_LIBLLVM_PATH:-$llvm_lib}"
 "$venv/bin/python" - <<'EOF'
 import mitsuba as mi

@@ -1,5 +1,5 @@
 //! GradNet through the public API and the CLI: the whole pipeline against the Python reference
-//! (`onnx/pipeline.py` with the torch model; fixtures from `onnx/make_fixtures.py`), tiling
+//! (`onnx/gdrecon_py/pipeline.py` with the torch model; fixtures from `onnx/gdrecon_py/make_fixtures.py`), tiling
 //! against the untiled run, and each failure a distinct, clear error.
 //!
 //! Needs ONNX Runtime 1.31 (found by the library's discovery: `bash onnx/setup.sh` installs

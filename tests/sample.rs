@@ -1,4 +1,4 @@
-//! The bundled sample (a Mitsuba 3 render by onnx/data/render.py): the Rust reader loads what
+//! The bundled sample (a Mitsuba 3 render by onnx/gdrecon_py/data/render.py): the Rust reader loads what
 //! the renderer writes, and every method improves on the base image against its reference.
 
 use gdrecon::{io, metrics, recon::reconstruct, Layer, Method, MethodConfig, Policy};

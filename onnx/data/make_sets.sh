@@ -3,6 +3,7 @@
 #
 #   bash onnx/data/make_sets.sh [val|train|all]      (default: all)
 #
+# Needs `bash onnx/setup.sh` (the venv, with the gdrecon_py package that renders).
 # Environment: GDRECON_DATA (default $HOME/.cache/gdrecon/data), GDRECON_VENV (see setup.sh),
 # TRAIN_PERTURB (default 0:16), TRAIN_REF_SPP (default 0 = noisy only), VAL_REF_SPP (4096).
 # Already rendered bundles are skipped (--skip-existing), so an interrupted run resumes.
@@ -21,12 +22,12 @@ source "$here/../env.sh"
 
 if [ "$what" = val ] || [ "$what" = all ]; then
   echo "# validation set -> $root/val"
-  time "$py" "$here/render.py" --scene all --size 320x180 --spp 4,16,64 \
+  time "$py" -m gdrecon_py.data.render --scene all --size 320x180 --spp 4,16,64 \
       --ref-spp "${VAL_REF_SPP:-4096}" --seed 20000 --out "$root/val" --skip-existing
 fi
 if [ "$what" = train ] || [ "$what" = all ]; then
   echo "# training set -> $root/train"
-  time "$py" "$here/render.py" --scene all --size 256x256 --spp 4,16 \
+  time "$py" -m gdrecon_py.data.render --scene all --size 256x256 --spp 4,16 \
       --perturb "${TRAIN_PERTURB:-0:16}" --perturb-seed 0 --ref-spp "${TRAIN_REF_SPP:-0}" \
       --seed 1000 --out "$root/train" --skip-existing
 fi

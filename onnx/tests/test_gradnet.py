@@ -1,12 +1,11 @@
-"""Tests of the GradNet model, losses, pre/post-processing and ONNX export (onnx/gradnet.py,
-onnx/pipeline.py, onnx/export.py, the committed onnx/*.onnx). Small sizes: a few seconds on 2 cores.
+"""Tests of the GradNet model, losses, pre/post-processing and ONNX export (gdrecon_py/gradnet.py,
+mulaw.py, pipeline.py, export.py, the committed onnx/*.onnx). Small sizes: a few seconds on 2 cores.
 
     ~/.cache/gdrecon/venv/bin/python -m pytest -q onnx/tests/test_gradnet.py
 """
 import json
 import math
 import os
-import sys
 
 import numpy as np
 import pytest
@@ -15,13 +14,13 @@ torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
 ort = pytest.importorskip("onnxruntime")
 
-ONNX_DIR = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-REPO = os.path.dirname(ONNX_DIR)
-sys.path.insert(0, ONNX_DIR)
-
-import export as ex  # noqa: E402
-import gradnet as gn  # noqa: E402
-import pipeline as pl  # noqa: E402
+from gdrecon_py import ONNX_DIR, REPO  # noqa: E402
+from gdrecon_py import export as ex  # noqa: E402
+from gdrecon_py import gradnet as gn  # noqa: E402
+from gdrecon_py import mulaw as ml  # noqa: E402
+from gdrecon_py import pipeline as pl  # noqa: E402
+from gdrecon_py.metrics import relmse  # noqa: E402
+from gdrecon_py.runtime import session  # noqa: E402
 
 SAMPLE = os.path.join(REPO, "examples", "data", "sample.exr")
 VAL = os.path.expanduser("~/.cache/gdrecon/data/val")
@@ -31,25 +30,19 @@ TOL = 1e-4
 torch.set_num_threads(2)
 
 
-def _sess(path):
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = 2
-    return ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
-
-
 # ---------------------------------------------------------------- mu-law
 
 def test_mulaw_roundtrip():
     x = np.concatenate([np.linspace(0, 1, 101), np.logspace(-6, 4, 50)]).astype(np.float64)
-    assert np.allclose(gn.mulaw_inv(gn.mulaw(x)), x, rtol=1e-9, atol=1e-12)
+    assert np.allclose(ml.mulaw_inv(ml.mulaw(x)), x, rtol=1e-9, atol=1e-12)
     t = torch.tensor(x)
-    assert torch.allclose(gn.mulaw_inv(gn.mulaw(t)), t, rtol=1e-9, atol=1e-12)
-    assert abs(float(gn.mulaw(1.0)) - 1.0) < 1e-12 and float(gn.mulaw(0.0)) == 0.0
+    assert torch.allclose(ml.mulaw_inv(ml.mulaw(t)), t, rtol=1e-9, atol=1e-12)
+    assert abs(float(ml.mulaw(1.0)) - 1.0) < 1e-12 and float(ml.mulaw(0.0)) == 0.0
     s = np.array([-3.0, -0.5, 0.0, 0.25, 2.0])
-    assert np.allclose(gn.mulaw_signed(s), np.sign(s) * np.log1p(16 * np.abs(s)) / np.log(17))
-    # numpy pipeline versions agree with the torch ones
-    assert np.allclose(pl.C_inv(pl.C(x.astype(np.float32))), x.astype(np.float32), rtol=1e-5, atol=1e-6)
-    assert np.allclose(pl.S(s.astype(np.float32)), gn.mulaw_signed(torch.tensor(s)).numpy(), atol=1e-6)
+    assert np.allclose(ml.mulaw_signed(s), np.sign(s) * np.log1p(16 * np.abs(s)) / np.log(17))
+    # the pipeline's float32 numpy forms agree with the torch ones
+    assert np.allclose(ml.C_inv(ml.C(x.astype(np.float32))), x.astype(np.float32), rtol=1e-5, atol=1e-6)
+    assert np.allclose(ml.S(s.astype(np.float32)), ml.mulaw_signed(torch.tensor(s)).numpy(), atol=1e-6)
 
 
 # ---------------------------------------------------------------- losses by hand
@@ -136,8 +129,8 @@ def test_make_inputs_channel_batch():
     dx, dy, f = torch.randn(2, 3, 8, 8), torch.randn(2, 3, 8, 8), torch.rand(2, 7, 8, 8)
     d, g = gn.make_inputs(c, dx, dy, f)
     assert d.shape == (6, 8, 8, 8) and g.shape == (6, 2, 8, 8)
-    assert torch.allclose(d[4, 0], gn.mulaw(c[1, 1])) and torch.equal(d[4, 1:], f[1])
-    assert torch.allclose(g[5, 1], gn.mulaw_signed(dy[1, 2]))
+    assert torch.allclose(d[4, 0], ml.mulaw(c[1, 1])) and torch.equal(d[4, 1:], f[1])
+    assert torch.allclose(g[5, 1], ml.mulaw_signed(dy[1, 2]))
 
 
 # ---------------------------------------------------------------- pre/post-processing
@@ -187,7 +180,7 @@ def test_bias_correction():
 # ---------------------------------------------------------------- ONNX parity
 
 def _parity(net, path, sizes, seed=0):
-    sess = _sess(path)
+    sess = session(path)
     rng = np.random.default_rng(seed)
     worst = 0.0
     for (h, w) in sizes:
@@ -284,7 +277,7 @@ def test_swapped_net_and_export(tmp_path, form):
     assert m.ir_version == 8 and m.opset_import[0].version == 17
     ops = {n.op_type for n in m.graph.node}
     assert ("ConvTranspose" in ops) == (form == "convtranspose")
-    got = _sess(path).run(["output"], {"data": d, "grad": g})[0]
+    got = session(path).run(["output"], {"data": d, "grad": g})[0]
     assert got.shape == (1, 1, 40, 56) and float(np.abs(got - ref).max()) < TOL
     back = ex.net_from_onnx(path)
     for k, v in net.state_dict().items():
@@ -322,7 +315,7 @@ def _frame_parity(frame, name):
     a = pl.reconstruct(frame, pl.torch_runner(net), use_features=use_feat, correct_bias=False)
     b = pl.reconstruct(frame, pl.ort_runner(path), use_features=use_feat, correct_bias=False)
     # compare in the network's (compressed) domain, where the 1e-4 bound applies
-    err = float(np.abs(pl.C(a) - pl.C(b)).max())
+    err = float(np.abs(ml.C(a) - ml.C(b)).max())
     assert np.isfinite(a).all() and err < TOL, err
     return a
 
@@ -338,7 +331,7 @@ def test_shipped_model_on_sample_frame(name):
     if "reference" in fr and name == "gradnet.onnx":
         # a trained model must improve on the noisy input of the bundled sample
         full = pl.reconstruct(fr, pl.ort_runner(os.path.join(ONNX_DIR, name)))
-        assert pl.relmse(full, fr["reference"]) < pl.relmse(fr["color"], fr["reference"])
+        assert relmse(full, fr["reference"]) < relmse(fr["color"], fr["reference"])
 
 
 def test_validation_frame_parity():

@@ -1,18 +1,15 @@
-"""Tests of onnx/data/render.py: random replay is right, bundles follow shared/CONVENTIONS.md,
+"""Tests of gdrecon_py/data/render.py: random replay is right, bundles follow docs/CONVENTIONS.md,
 renders are deterministic. Runs in well under a minute on 2 cores.
 
     ~/.cache/gdrecon/venv/bin/python -m pytest -q onnx/tests
 """
 import os
-import sys
 
 import numpy as np
 import pytest
 
-DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "data")
-sys.path.insert(0, os.path.abspath(DATA))
-
-import render as r  # noqa: E402  (sets the llvm_ad_rgb variant)
+from gdrecon_py.data import render as r  # (sets the llvm_ad_rgb variant)
+from gdrecon_py.metrics import relmse
 
 W = H = 32
 SPP = 4          # spp of each noisy estimate
@@ -143,8 +140,8 @@ def test_bundle_follows_conventions(tmp_path):
         assert np.all(layers["depth"] > 0)  # closed box: every camera ray hits
         # the reference is shared by both bundles and independent of the noisy render
         assert not np.array_equal(layers["reference"], layers["color"])
-        assert r.relmse(layers["color"], layers["reference"]) < r.relmse(np.zeros_like(layers["color"]),
-                                                                       layers["reference"])
+        assert relmse(layers["color"], layers["reference"]) < relmse(np.zeros_like(layers["color"]),
+                                                                   layers["reference"])
 
 
 def test_render_is_deterministic_for_a_seed():
@@ -157,7 +154,7 @@ def test_render_is_deterministic_for_a_seed():
 
 
 def test_perturbations_are_deterministic_and_distinct_from_base():
-    import scenes
+    from gdrecon_py.data import scenes
 
     for name in scenes.SCENES:
         base = r.Frame(name, 16, 9).render((0, 0), 1, 4)

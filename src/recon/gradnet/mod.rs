@@ -5,7 +5,7 @@
 //! 8 by index maps, the network per colour channel (R, G, B each a batch of one: the same
 //! speed as a batch of three here, a third of the memory) in overlapping tiles ([`tiles`]),
 //! the inverse μ-law, then the Gaussian bias correction over the whole frame ([`bias`]).
-//! `onnx/pipeline.py` is the reference this module is tested against.
+//! `onnx/gdrecon_py/pipeline.py` is the reference this module is tested against.
 //!
 //! Only this module (and only with the `gradnet` cargo feature) knows about ONNX Runtime. The
 //! runtime is found and loaded by the first GradNet plan ([`runtime`]); sessions are kept in
@@ -42,7 +42,7 @@ use crate::error::Result;
 #[non_exhaustive]
 pub struct GradNetConfig {
     /// A model file to run instead of the embedded models. Its SHA-256 must match the
-    /// `.sha256` file beside it (written by `onnx/export.py`) or one of the embedded models'.
+    /// `.sha256` file beside it (written by `onnx/gdrecon_py/export.py`) or one of the embedded models'.
     /// Its `data` input decides whether it uses features.
     pub model: Option<PathBuf>,
     /// The ONNX Runtime library to load, before the other discovery steps.

@@ -3,7 +3,7 @@
 //! The two exported models (`onnx/gradnet.onnx` with features, `onnx/gradnet_nofeat.onnx`
 //! without) are embedded in the library by the `embed-model` feature (on by default), or read
 //! from a file. Either way the SHA-256 of the bytes is checked before ONNX Runtime sees them:
-//! against the `.sha256` file `onnx/export.py` writes beside each model (recorded at export),
+//! against the `.sha256` file `onnx/gdrecon_py/export.py` writes beside each model (recorded at export),
 //! or, for a file without one, against the hashes of the two models this build knows.
 
 use std::borrow::Cow;
@@ -130,7 +130,7 @@ pub(crate) fn from_file(path: &Path) -> Result<ModelBytes> {
             } else {
                 Err(Error::Model(format!(
                     "{origin}: SHA-256 {actual} is not that of an exported GradNet model \
-                     (expected {} or {}, or a {} file beside the model as onnx/export.py \
+                     (expected {} or {}, or a {} file beside the model as onnx/gdrecon_py/export.py \
                      writes): the file is damaged or is another model",
                     ModelVariant::Full.recorded_sha256(),
                     ModelVariant::NoFeatures.recorded_sha256(),

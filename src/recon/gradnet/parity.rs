@@ -1,5 +1,5 @@
 //! Parity of each native stage with the Python reference, on the fixtures written by
-//! `onnx/make_fixtures.py` (torch model, numpy pipeline) under `tests/fixtures/gradnet/`.
+//! `onnx/gdrecon_py/make_fixtures.py` (torch model, numpy pipeline) under `tests/fixtures/gradnet/`.
 //! Stated tolerances: pre-processing 1e-6 absolute (same f32 formulas), bias correction 1e-5
 //! relative (numpy blurs in f64, we in f32), network 1e-4 absolute against torch.
 

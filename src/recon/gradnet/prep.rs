@@ -1,6 +1,6 @@
 //! GradNet's input and output transforms, done natively around the graph (the graph holds only
 //! the network): μ-law compression, feature normalisation, padding to a multiple of 8 and the
-//! inverse transform. Each function is the Rust twin of one in `onnx/pipeline.py`, which the
+//! inverse transform. Each function is the Rust twin of one in `onnx/gdrecon_py/pipeline.py`, which the
 //! parity tests hold it to.
 //!
 //! Padding never materialises a padded frame: a tile reads the frame through index maps
@@ -102,7 +102,7 @@ impl AxisMap {
 /// min-max normalised over the frame (0 when constant). Everything clamped to ±1e5 first.
 ///
 /// Albedo is clamped to [0, 1] at inference (a deviation from the release, documented in
-/// `onnx/pipeline.py`): conductors' AOV albedo reaches hundreds, far outside what the network
+/// `onnx/gdrecon_py/pipeline.py`): conductors' AOV albedo reaches hundreds, far outside what the network
 /// learnt.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) struct FeatureNorm {

@@ -1,7 +1,7 @@
 """Write the GradNet parity fixtures the Rust tests compare against (tests/fixtures/gradnet/).
 
 Everything comes from the torch reference model (the training checkpoints, not the ONNX
-export) and the numpy reference pipeline (onnx/pipeline.py):
+export) and the numpy reference pipeline (gdrecon_py/pipeline.py):
 
   crop_a.exr, crop_b.exr        two crops of examples/data/sample.exr (45 x 37: padded on both
                                 axes; 56 x 40: no padding), every layer f32, the last dx column
@@ -16,23 +16,18 @@ export) and the numpy reference pipeline (onnx/pipeline.py):
 
 Run (needs the checkpoints of docs/gradnet.md; takes a few seconds):
     source onnx/env.sh
-    $GDRECON_PYTHON onnx/make_fixtures.py
+    $GDRECON_PYTHON -m gdrecon_py.make_fixtures
 """
 import argparse
 import os
-import sys
 
 import numpy as np
 import torch
 
-ONNX_DIR = os.path.dirname(os.path.abspath(__file__))
-REPO = os.path.dirname(ONNX_DIR)
-sys.path.insert(0, ONNX_DIR)
-sys.path.insert(0, os.path.join(ONNX_DIR, "data"))
-
-import export as ex  # noqa: E402
-import pipeline as pl  # noqa: E402
-from render import write_bundle  # noqa: E402
+from . import REPO
+from . import export as ex
+from . import pipeline as pl
+from .data.render import write_bundle
 
 RUNS = os.path.expanduser("~/.cache/gdrecon/train_runs")
 CROPS = {"crop_a": (60, 100, 37, 45), "crop_b": (100, 200, 40, 56)}   # y0, x0, h, w

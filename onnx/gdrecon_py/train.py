@@ -1,10 +1,10 @@
 """Unsupervised GradNet training on noisy gradient-domain frames (no reference is ever read).
 
     source onnx/env.sh
-    $GDRECON_PYTHON onnx/train.py --out $HOME/.cache/gdrecon/train_runs/full [options]
+    $GDRECON_PYTHON -m gdrecon_py.train --out $HOME/.cache/gdrecon/train_runs/full [options]
     (re-run the same command to resume from <out>/last.pt)
 
-Loss (Guo et al. 2019, Eq. 7, as in the authors' release; onnx/gradnet.py):
+Loss (Guo et al. 2019, Eq. 7, as in the authors' release; gdrecon_py/gradnet.py):
     L = L_grad + alpha L_data + lambda_F(epoch) L_1st,      alpha = 1, mu = 16,
     lambda_F = 0 for the first 6 epochs (0-based epoch < 6), then 0.11 * 1.1^(epoch-6), capped at 2.
 Per epoch: `--steps` Adam steps of the main net with the G-branch frozen (G detached in L_1st),
@@ -15,7 +15,7 @@ only, without G-branch.
 
 Data: every bundle in --data (default $HOME/.cache/gdrecon/data/train: 192 noisy 256x256
 frames, 4 and 16 spp, 6 scenes x 16 perturbations) is sanitised and its features normalised per
-frame (onnx/pipeline.py; albedo clamped at +-1e5 as in the release, while inference clamps it
+frame (gdrecon_py/pipeline.py; albedo clamped at +-1e5 as in the release, while inference clamps it
 to [0, 1], see pipeline.normalize_features), then cached as one .npy in --cache. A step draws --batch random
 frames and one random --patch x --patch crop from each (seeded, uniform); each crop's R, G, B
 become 3 items of the network batch (batch of 3 x --batch items).
@@ -59,10 +59,8 @@ import time
 import numpy as np
 import torch
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-import gradnet as gn  # noqa: E402
-import pipeline as pl  # noqa: E402
+from . import gradnet as gn
+from . import pipeline as pl
 
 
 def lambda_f(epoch):

@@ -2,7 +2,7 @@
 one of them per op type (docs/gradnet.md, "Decoder rewrite").
 
     source onnx/env.sh
-    $GDRECON_PYTHON onnx/bench_deconv.py --ckpt $HOME/.cache/gdrecon/train_runs/full/last.pt
+    $GDRECON_PYTHON -m gdrecon_py.bench_deconv --ckpt $HOME/.cache/gdrecon/train_runs/full/last.pt
 
 Exports every form of export.DECONV_FORMS from the checkpoint to a temporary directory (nothing
 in the repository is written), then, with the settings of the Rust path (intra-op threads 2,
@@ -17,34 +17,18 @@ import argparse
 import collections
 import json
 import os
-import sys
 import tempfile
 import time
 
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-import export as ex  # noqa: E402
-
-
-def session(path, profile_prefix=None):
-    import onnxruntime as ort
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = 2
-    so.inter_op_num_threads = 1
-    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    so.enable_cpu_mem_arena = True
-    if profile_prefix:
-        so.enable_profiling = True
-        so.profile_file_prefix = profile_prefix
-    return ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+from . import export as ex
+from .runtime import session
 
 
 def profile_by_op(path, feeds, runs, prefix):
     """{op type: ms} of the `*_kernel_time` events of the last of `runs` runs, and the run's ms."""
-    s = session(path, prefix)
+    s = session(path, profile_prefix=prefix)
     for _ in range(runs):
         s.run(None, feeds)
     prof = s.end_profiling()

@@ -1,8 +1,7 @@
-#!/usr/bin/env python3
 """Contact sheet of the base scenes: the tone-mapped `reference` layer of one bundle per scene in
 a grid, each labelled with its name.
 
-  python onnx/data/contact_sheet.py --val ~/.cache/gdrecon/data/val --out docs/scenes.png
+  $GDRECON_PYTHON -m gdrecon_py.data.contact_sheet --val ~/.cache/gdrecon/data/val --out docs/scenes.png
 
 Takes `<scene>_64spp.exr` (or any `<scene>_*spp.exr` with a reference layer) from --val.
 Tone mapping: Reinhard x / (1 + x) per channel, then the sRGB transfer curve.
@@ -15,9 +14,6 @@ import sys
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-
 
 def tonemap(x):
     x = np.clip(np.nan_to_num(x, nan=0.0, posinf=0.0), 0, None)
@@ -27,8 +23,8 @@ def tonemap(x):
 
 
 def main(argv=None):
-    from render import read_bundle  # noqa: E402
-    import scenes
+    from .render import read_bundle  # sets the Mitsuba variant scenes needs
+    from . import scenes
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--val", default=os.path.expanduser("~/.cache/gdrecon/data/val"))

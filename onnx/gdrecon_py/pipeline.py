@@ -20,33 +20,21 @@ Steps, for one frame (arrays H x W x C, float32, linear radiance):
     (blur(R+G+B of output) + 1e-9), multiplied into all three channels.
 """
 import os
-import sys
 
 import numpy as np
 
-MU = 16.0
+from . import runtime
+from .mulaw import C, C_inv, S  # the float32 numpy mu-law (mu = 16)
+
 FEAT_CLAMP = 1e5
 BIAS_RADIUS = 45
 BIAS_SIGMA = 15.0
 
 
-def C(x, mu=MU):
-    return (np.log1p(mu * x) / np.log1p(mu)).astype(np.float32)
-
-
-def S(x, mu=MU):
-    return (np.sign(x) * np.log1p(mu * np.abs(x)) / np.log1p(mu)).astype(np.float32)
-
-
-def C_inv(y, mu=MU):
-    return (np.expm1(np.asarray(y, np.float64) * np.log1p(mu)) / mu).astype(np.float32)
-
-
 def read_frame(path):
     """Bundle -> dict of H x W x C float32 arrays (color, dx, dy, [albedo, normal, depth,
-    reference]) plus 'spp'. Uses onnx/data/render.py's reader."""
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "data"))
-    from render import read_bundle  # noqa: E402
+    reference]) plus 'spp'. Uses data/render.py's reader (imported here: it loads Mitsuba)."""
+    from .data.render import read_bundle
     layers, header = read_bundle(path)
     out = {k: v for k, v in layers.items()}
     out["spp"] = header.get("spp")
@@ -70,7 +58,7 @@ def has_features(frame):
 
 
 ALBEDO_RANGE = (0.0, 1.0)
-TRAIN_ALBEDO_RANGE = (-FEAT_CLAMP, FEAT_CLAMP)   # what onnx/train.py used (the release's clamp)
+TRAIN_ALBEDO_RANGE = (-FEAT_CLAMP, FEAT_CLAMP)   # what train.py used (the release's clamp)
 
 
 def normalize_features(albedo, normal, depth, albedo_range=ALBEDO_RANGE):
@@ -211,21 +199,12 @@ def torch_runner(model):
 
 
 def ort_runner(path_or_session):
-    import onnxruntime as ort
     sess = path_or_session
     if isinstance(path_or_session, (str, os.PathLike)):
-        so = ort.SessionOptions()
-        so.intra_op_num_threads = 2
-        sess = ort.InferenceSession(str(path_or_session), so, providers=["CPUExecutionProvider"])
+        sess = runtime.session(str(path_or_session))
 
     def run(data, grad):
         return sess.run(["output"], {"data": data, "grad": grad})[0]
     shape = sess.get_inputs()[0].shape
     run.data_channels = shape[1] if isinstance(shape[1], int) else None
     return run
-
-
-def relmse(img, ref):
-    img = np.asarray(img, np.float64)
-    ref = np.asarray(ref, np.float64)
-    return float(np.mean((img - ref) ** 2 / (ref ** 2 + 0.01)))

@@ -1,22 +1,19 @@
-#!/usr/bin/env python3
 """relMSE of the noisy base image (`color`) against `reference` for every bundle in a folder,
 as a Markdown table (scenes x spp). relMSE = mean over pixels and channels of
-(I - R)^2 / (R^2 + 0.01) (shared/CONVENTIONS.md), 5 significant digits.
+(I - R)^2 / (R^2 + 0.01) (gdrecon_py.metrics, docs/CONVENTIONS.md), 5 significant digits.
 
-  python onnx/data/evaluate.py ~/.cache/gdrecon/data/val
+  $GDRECON_PYTHON -m gdrecon_py.data.evaluate ~/.cache/gdrecon/data/val
 """
 import argparse
 import glob
 import os
 import re
-import sys
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
+from ..metrics import relmse
 
 
 def main(argv=None):
-    from render import read_bundle, relmse
+    from .render import read_bundle
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("folder")

@@ -10,47 +10,19 @@ Inputs per item (all N x C x H x W, float32, H and W multiples of 8):
   grad     : 2 channels  [S(dx_c), S(dy_c)]
 Output: N x 1 x H x W, in the mu-law compressed domain (radiance = C^-1(out)).
 
-C(x) = log(1 + mu x) / log(1 + mu), mu = 16; S(x) = sign(x) C(|x|).
+C(x) = log(1 + mu x) / log(1 + mu), mu = 16; S(x) = sign(x) C(|x|) (gdrecon_py.mulaw).
 
 The G-branch (`GBranch`, training only) maps concat(data, grad) (10 channels) to the 7-vector G
 of the first-order loss. The losses are here too (`loss_data`, `loss_grad`, `loss_first_order`).
 """
-import math
-
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-MU = 16.0
+from .mulaw import mulaw, mulaw_inv, mulaw_signed
+
 N_FEAT = 7
 LRELU = 0.01
-
-
-# ------------------------------------------------------------------------------------------
-# mu-law
-
-def mulaw(x, mu=MU):
-    """C(x) = log(1 + mu x) / log(1 + mu) (x >= 0). Works on torch tensors and numpy arrays."""
-    if isinstance(x, torch.Tensor):
-        return torch.log1p(mu * x) / math.log1p(mu)
-    import numpy as np
-    return np.log1p(mu * x) / np.log1p(mu)
-
-
-def mulaw_signed(x, mu=MU):
-    """S(x) = sign(x) C(|x|)."""
-    if isinstance(x, torch.Tensor):
-        return torch.sign(x) * torch.log1p(mu * x.abs()) / math.log1p(mu)
-    import numpy as np
-    return np.sign(x) * np.log1p(mu * np.abs(x)) / np.log1p(mu)
-
-
-def mulaw_inv(y, mu=MU):
-    """C^-1(y) = ((1 + mu)^y - 1) / mu."""
-    if isinstance(y, torch.Tensor):
-        return torch.expm1(y * math.log1p(mu)) / mu
-    import numpy as np
-    return np.expm1(y * np.log1p(mu)) / mu
 
 
 # ------------------------------------------------------------------------------------------

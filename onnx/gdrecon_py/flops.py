@@ -3,7 +3,7 @@ convolution throughput of ONNX Runtime on this machine: together, the floor of t
 run time (docs/gradnet.md, "Speed").
 
     source onnx/env.sh
-    $GDRECON_PYTHON onnx/flops.py onnx/gradnet.onnx --size 1280x720 --measure
+    $GDRECON_PYTHON -m gdrecon_py.flops onnx/gradnet.onnx --size 1280x720 --measure
 
 Counting: shapes come from ONNX shape inference with the inputs fixed to 1 x C x H x W (sizes
 padded to a multiple of 8 first, as the pipeline does); a Conv costs N Cout Hout Wout (Cin /
@@ -23,6 +23,8 @@ import time
 import numpy as np
 import onnx
 from onnx import helper, shape_inference, TensorProto
+
+from .runtime import session
 
 
 def parse_size(s):
@@ -65,16 +67,6 @@ def count(path, width, height):
             if out:
                 elements[node.op_type] += int(np.prod(out))
     return macs, rows, elements
-
-
-def session(model_bytes_or_path, threads=2):
-    import onnxruntime as ort
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = threads
-    so.inter_op_num_threads = 1
-    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    return ort.InferenceSession(model_bytes_or_path, so, providers=["CPUExecutionProvider"])
 
 
 def median_time(fn, runs, warmup=2):

@@ -1,10 +1,10 @@
 """Export trained GradNet weights to ONNX (network only: mu-law, padding and the bias correction
-are the caller's job, see onnx/pipeline.py and onnx/README.md).
+are the caller's job, see gdrecon_py/pipeline.py and onnx/README.md).
 
     source onnx/env.sh
-    $GDRECON_PYTHON onnx/export.py --ckpt $HOME/.cache/gdrecon/train_runs/full/last.pt \
+    $GDRECON_PYTHON -m gdrecon_py.export --ckpt $HOME/.cache/gdrecon/train_runs/full/last.pt \
         --out onnx/gradnet.onnx
-    $GDRECON_PYTHON onnx/export.py --ckpt $HOME/.cache/gdrecon/train_runs/nofeat/last.pt \
+    $GDRECON_PYTHON -m gdrecon_py.export --ckpt $HOME/.cache/gdrecon/train_runs/nofeat/last.pt \
         --out onnx/gradnet_nofeat.onnx
 
 Writes <out>, <out>.sha256 (`sha256sum` format) and updates onnx/models.json (one entry per
@@ -28,27 +28,25 @@ convolutions; the published weights are only rearranged (copied, never recompute
   subpixel       every layer: one 2x2 conv (pads 1, 4*Cout channels, the layer's ReLU fused
                  before the shuffle), DepthToSpace (CRD) and a 1-pixel crop (one Slice).
   convtranspose  the original graph.
-Timings (1 x 8 x 720 x 1280, ORT 1.31, 2 threads): docs/gradnet.md; onnx/bench_deconv.py.
+Timings (1 x 8 x 720 x 1280, ORT 1.31, 2 threads): docs/gradnet.md; gdrecon_py/bench_deconv.py.
 """
 import argparse
 import copy
 import hashlib
 import json
 import os
-import sys
 
 import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-import gradnet as gn  # noqa: E402
+from . import ONNX_DIR, runtime
+from . import gradnet as gn
 
 OPSET = 17
 MAX_IR = 10
-MANIFEST = os.path.join(HERE, "models.json")
+MANIFEST = os.path.join(ONNX_DIR, "models.json")
 
 
 def sha256_file(path):
@@ -404,8 +402,7 @@ def main(argv=None):
     m = export_model(net, args.out, meta, deconv=args.deconv)
 
     # self-check with onnxruntime
-    import onnxruntime as ort
-    sess = ort.InferenceSession(args.out, providers=["CPUExecutionProvider"])
+    sess = runtime.session(args.out)
     rng = np.random.default_rng(0)
     worst = 0.0
     for (h, w) in [(16, 24), (40, 32)]:

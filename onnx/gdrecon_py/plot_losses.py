@@ -1,7 +1,7 @@
-"""Loss curves of a training run (log.jsonl written by onnx/train.py) as a PNG, drawn with
+"""Loss curves of a training run (log.jsonl written by gdrecon_py/train.py) as a PNG, drawn with
 Pillow (matplotlib is not in the project's environment).
 
-    $GDRECON_PYTHON onnx/plot_losses.py RUN_DIR [RUN_DIR2 ...] -o docs/gradnet_losses.png
+    $GDRECON_PYTHON -m gdrecon_py.plot_losses RUN_DIR [RUN_DIR2 ...] -o docs/gradnet_losses.png
 
 One panel per loss (L_grad, L_data, L_1st, total, L' of the G-branch); per-step values in light
 colour, the moving average over 20 steps in full colour; one colour per run.

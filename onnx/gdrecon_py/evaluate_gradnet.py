@@ -3,12 +3,14 @@
     source onnx/env.sh
     target/release/gdrecon bench ~/.cache/gdrecon/data/val/*.exr --methods l2,l1 --runs 1 \
         --warmup 0 --csv /tmp/val_l2l1.csv
-    $GDRECON_PYTHON onnx/evaluate_gradnet.py --cli-csv /tmp/val_l2l1.csv --md docs/gradnet_eval.md
+    $GDRECON_PYTHON -m gdrecon_py.evaluate_gradnet --cli-csv /tmp/val_l2l1.csv \
+        --md docs/gradnet_eval.md
 
 GradNet runs through the exported ONNX graph (onnxruntime) and the reference pipeline of
-onnx/pipeline.py (feature normalisation, mu-law, pad to x8, run, crop, inverse mu-law, Gaussian
-bias correction). Also reports GradNet without the bias correction, and the no-feature model when
-onnx/gradnet_nofeat.onnx exists. relMSE = mean((I - R)^2 / (R^2 + 0.01)) (CONVENTIONS.md).
+gdrecon_py/pipeline.py (feature normalisation, mu-law, pad to x8, run, crop, inverse mu-law,
+Gaussian bias correction). Also reports GradNet without the bias correction, and the no-feature
+model when onnx/gradnet_nofeat.onnx exists. relMSE = mean((I - R)^2 / (R^2 + 0.01))
+(gdrecon_py.metrics, docs/CONVENTIONS.md).
 """
 import argparse
 import csv
@@ -16,14 +18,11 @@ import glob
 import json
 import math
 import os
-import sys
 import time
 
-import numpy as np
-
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-import pipeline as pl  # noqa: E402
+from . import ONNX_DIR
+from . import pipeline as pl
+from .metrics import relmse
 
 SCENES = ["cornell", "metals", "glass", "textures", "indirect", "sunsky"]
 SPPS = [4, 16, 64]
@@ -56,8 +55,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--val", default=os.path.expanduser("~/.cache/gdrecon/data/val"))
     ap.add_argument("--cli-csv", help="gdrecon bench --csv output with l2 and l1 rows")
-    ap.add_argument("--model", default=os.path.join(HERE, "gradnet.onnx"))
-    ap.add_argument("--nofeat", default=os.path.join(HERE, "gradnet_nofeat.onnx"))
+    ap.add_argument("--model", default=os.path.join(ONNX_DIR, "gradnet.onnx"))
+    ap.add_argument("--nofeat", default=os.path.join(ONNX_DIR, "gradnet_nofeat.onnx"))
     ap.add_argument("--md", help="write the markdown table here")
     ap.add_argument("--json", help="write raw numbers here")
     args = ap.parse_args(argv)
@@ -77,11 +76,11 @@ def main(argv=None):
             raw = pl.reconstruct(fr, run_full, use_features=True, correct_bias=False)
             corr = pl.bias_correct(raw, pl.sanitize(fr)["color"])
             r = {"scene": scene, "spp": spp, "file": os.path.basename(f),
-                 "base": pl.relmse(pl.sanitize(fr)["color"], ref),
+                 "base": relmse(pl.sanitize(fr)["color"], ref),
                  "l2": cli.get((os.path.basename(f), "l2")), "l1": cli.get((os.path.basename(f), "l1")),
-                 "gradnet": pl.relmse(corr, ref), "gradnet_nobias": pl.relmse(raw, ref)}
+                 "gradnet": relmse(corr, ref), "gradnet_nobias": relmse(raw, ref)}
             if run_nf:
-                r["gradnet_nofeat"] = pl.relmse(pl.reconstruct(fr, run_nf, use_features=False), ref)
+                r["gradnet_nofeat"] = relmse(pl.reconstruct(fr, run_nf, use_features=False), ref)
             rows.append(r)
             print(json.dumps(r), flush=True)
     print(f"evaluated {len(rows)} frames in {time.time() - t0:.1f} s", flush=True)

@@ -1,5 +1,4 @@
-#!/usr/bin/env python3
-"""Render gdrecon frame bundles (shared/CONVENTIONS.md) with Mitsuba 3 (llvm_ad_rgb).
+"""Render gdrecon frame bundles (docs/CONVENTIONS.md) with Mitsuba 3 (llvm_ad_rgb).
 
 Gradient-domain path tracing by *random replay* with the stock `path` integrator: the film has
 one extra column and row, a box reconstruction filter and sample_border=False; the W x H crop
@@ -15,10 +14,10 @@ Features (albedo, shading normal, depth) come from the `aov` integrator; `refere
 independent high-spp render (its own seeds) of the same crop.
 
 Examples:
-  python onnx/data/render.py --scene cornell --size 320x180 --spp 16 --ref-spp 1024 \
-      --seed 1 --out examples/data --name sample
-  python onnx/data/render.py --scene all --size 256x256 --spp 4,16 --perturb 0:16 --seed 1000 \
-      --out ~/.cache/gdrecon/data/train
+  $GDRECON_PYTHON -m gdrecon_py.data.render --scene cornell --size 320x180 --spp 16 \
+      --ref-spp 1024 --seed 1 --out examples/data --name sample
+  $GDRECON_PYTHON -m gdrecon_py.data.render --scene all --size 256x256 --spp 4,16 \
+      --perturb 0:16 --seed 1000 --out ~/.cache/gdrecon/data/train
 """
 from __future__ import annotations
 
@@ -27,14 +26,11 @@ import glob
 import json
 import os
 import subprocess
-import sys
 import time
 
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-if HERE not in sys.path:
-    sys.path.insert(0, HERE)
+from ..metrics import relmse
 
 VARIANT = "llvm_ad_rgb"
 AOVS = "albedo:albedo,nn:sh_normal,dd:depth"
@@ -73,7 +69,7 @@ def init_mitsuba():
 mi = init_mitsuba()
 import drjit as dr  # noqa: E402
 
-import scenes  # noqa: E402
+from . import scenes  # noqa: E402  (needs the variant set above)
 
 
 # --------------------------------------------------------------------------------------------
@@ -283,13 +279,6 @@ def read_bundle(path):
         comps = sorted(comps, key=lambda c: order.get(c.upper(), 9))
         layers[layer] = np.stack([chans[f"{layer}.{c}"].astype(np.float32) for c in comps], axis=-1)
     return layers, f.header()
-
-
-def relmse(img, ref):
-    """relMSE = mean over pixels and channels of (I-R)^2 / (R^2 + 0.01) (CONVENTIONS.md)."""
-    img = np.asarray(img, np.float64)
-    ref = np.asarray(ref, np.float64)
-    return float(np.mean((img - ref) ** 2 / (ref ** 2 + 0.01)))
 
 
 # --------------------------------------------------------------------------------------------
