@@ -52,7 +52,7 @@ echo "== 1/4 validation set: every variant, runs 3 (about 10 minutes)"
   "${threads[@]}" --out-dir "$out" \
   --title "Validation set: 320 x 180, six scenes, 4 / 16 / 64 spp, 4096 spp references"
 
-echo "== 2/4 1280 x 720: every method, runs 5 (about 8 minutes, the filter most of it)"
+echo "== 2/4 1280 x 720: every method, runs 5 (about 8 minutes, frgr most of it)"
 "$bin" bench "${hd[@]}" --methods l2,l1,frgr,gradnet --runs 5 --warmup 1 \
   "${threads[@]}" --out-dir "$out/720p" \
   --title "1280 x 720, 16 spp, 256 spp references"
@@ -62,10 +62,10 @@ echo "== 3/4 scaling: l2, l1, gradnet at 0.5, 1, 2 x of cornell 720p, runs 5"
   "${threads[@]}" --out-dir "$out/scaling" \
   --title "Resolution scaling: l2, l1, gradnet (cornell, 720p = 1x)"
 
-echo "== 4/4 scaling: filter at 0.5, 1 x of cornell 720p, runs 1 (it needs ~35 s per 720p frame)"
-"$bin" bench "${hd[0]}" --methods filter --scales 0.5,1 --runs 1 --warmup 0 \
+echo "== 4/4 scaling: frgr at 0.5, 1 x of cornell 720p, runs 1 (it needs ~35 s per 720p frame)"
+"$bin" bench "${hd[0]}" --methods frgr --scales 0.5,1 --runs 1 --warmup 0 \
   "${threads[@]}" --out-dir "$out/scaling-filter" \
-  --title "Resolution scaling: filter (cornell, 720p = 1x, one run, no warm-up)"
+  --title "Resolution scaling: frgr (cornell, 720p = 1x, one run, no warm-up)"
 
 # One page: the validation summary, then the others with their headings one level down.
 for part in 720p scaling scaling-filter; do
