@@ -115,7 +115,6 @@ impl Register for AutoConfig {
         width: usize,
         height: usize,
     ) -> Result<Box<dyn Reconstructor>> {
-        super::param::validate(self)?;
         Ok(Box::new(Auto::new(self.clone(), context, width, height)))
     }
 

@@ -77,8 +77,8 @@ pub(crate) trait Register: Settings + Clone {
     /// Whether this build can run the method (its cargo feature is on).
     const BUILT: bool = true;
 
-    /// Plans the method for `width` x `height` frames (sizes already checked non-zero),
-    /// checking the settings first.
+    /// Plans the method for `width` x `height` frames (sizes already checked non-zero, every
+    /// parameter already checked against its table).
     fn plan(
         &self,
         context: &Context,
@@ -246,6 +246,8 @@ impl<C: Register> RegisterDyn for C {
         width: usize,
         height: usize,
     ) -> Result<Box<dyn Reconstructor>> {
+        // The one place a configuration is checked (fields set directly in Rust included).
+        param::validate(self)?;
         self.plan(context, width, height)
     }
 
@@ -296,18 +298,23 @@ impl MethodConfig {
 
     /// Sets parameter `name`, checking its type and range against the method's table.
     pub fn set(&mut self, name: &str, value: Value) -> Result<()> {
-        let info = self.param(name)?;
-        let value = info.check(value)?;
-        let written = self.write(&info.name, value);
-        debug_assert!(written, "listed parameters can be written");
+        let value = self.param(name)?.check(value)?;
+        self.write_checked(name, value);
         Ok(())
+    }
+
+    /// Writes a value its [`ParamInfo`] accepted.
+    fn write_checked(&mut self, name: &str, value: Value) {
+        let written = self.write(name, value);
+        debug_assert!(written, "listed parameters can be written");
     }
 
     /// Sets parameter `name` from text (`"0.3"`, `"true"`, a choice's name), as the CLI's
     /// `--param name=value` and bench variants do.
     pub fn set_text(&mut self, name: &str, text: &str) -> Result<()> {
         let value = self.param(name)?.parse(text)?;
-        self.set(name, value)
+        self.write_checked(name, value);
+        Ok(())
     }
 
     /// Sets `name=value` (the form `--param` takes).

@@ -22,7 +22,7 @@ use rayon::prelude::*;
 
 use super::dct::DctPoisson;
 use super::ops::{apply_weighted_dot, plane_sums, Dims, RowWeights};
-use super::param::{self, Param, Params, Preset, Range};
+use super::param::{Param, Params, Preset, Range};
 use super::poisson_l2::{ALPHA_RANGE, DEFAULT_ALPHA};
 use super::{Method, Reconstructor, Register};
 use crate::context::Context;
@@ -180,7 +180,6 @@ struct CgOutcome {
 impl PoissonL1 {
     /// Plans the solve for `width` x `height` frames.
     pub(crate) fn new(config: PoissonL1Config, width: usize, height: usize) -> Result<Self> {
-        param::validate(&config)?;
         let dims = Dims {
             w: width,
             h: height,

@@ -8,7 +8,7 @@
 
 use super::dct::DctPoisson;
 use super::ops::{grad_adjoint, Dims};
-use super::param::{self, Param, Params, Range};
+use super::param::{Param, Params, Range};
 use super::{Method, Reconstructor, Register};
 use crate::context::Context;
 use crate::error::Result;
@@ -73,7 +73,6 @@ pub(crate) struct PoissonL2 {
 impl PoissonL2 {
     /// Plans the solve for `width` x `height` frames.
     pub(crate) fn new(config: PoissonL2Config, width: usize, height: usize) -> Result<Self> {
-        param::validate(&config)?;
         let dims = Dims {
             w: width,
             h: height,

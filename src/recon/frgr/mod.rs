@@ -17,7 +17,7 @@ use std::borrow::Cow;
 use rayon::prelude::*;
 
 use super::converged::converged_mask;
-use super::param::{self, Param, Params, Preset};
+use super::param::{Param, Params, Preset};
 use super::poisson_l1::PoissonL1;
 use super::{Method, PoissonL1Config, Reconstructor, Register};
 use crate::context::Context;
@@ -202,7 +202,6 @@ pub(crate) struct Frgr {
 impl Frgr {
     /// Plans FRGR for `width` x `height` frames.
     pub(crate) fn new(config: FrgrConfig, width: usize, height: usize) -> Result<Self> {
-        param::validate(&config)?;
         let l1 = match config.guide {
             FrgrGuide::PoissonL1 => Some((
                 PoissonL1::new(PoissonL1Config::default(), width, height)?,

@@ -31,7 +31,7 @@ use std::path::PathBuf;
 
 pub use model::ModelVariant;
 
-use super::param::{self, Param, Params};
+use super::param::{Param, Params};
 use super::{Reconstructor, Register};
 use crate::context::Context;
 use crate::error::Result;
@@ -109,7 +109,6 @@ impl Register for GradNetConfig {
         width: usize,
         height: usize,
     ) -> Result<Box<dyn Reconstructor>> {
-        param::validate(self)?;
         #[cfg(feature = "gradnet")]
         return Ok(Box::new(GradNet::new(
             self.clone(),

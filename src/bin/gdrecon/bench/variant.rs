@@ -83,8 +83,7 @@ pub fn parse(name: &str, common: &[String], runtime: &RuntimeArgs) -> gdrecon::R
         }
     }
     for assignment in common {
-        let param = assignment.split('=').next().unwrap_or_default().trim();
-        if config.param(param).is_ok() {
+        if config.param(param_name(assignment)).is_ok() {
             config
                 .set_assignment(assignment)
                 .map_err(|e| bad(name, &message(e)))?;
@@ -111,7 +110,7 @@ pub fn parse(name: &str, common: &[String], runtime: &RuntimeArgs) -> gdrecon::R
 /// Checks that each of `common` names a parameter of at least one variant's method.
 pub fn check_common(common: &[String], variants: &[Variant]) -> gdrecon::Result<()> {
     for assignment in common {
-        let param = assignment.split('=').next().unwrap_or_default().trim();
+        let param = param_name(assignment);
         if !variants.iter().any(|v| v.config.param(param).is_ok()) {
             let methods: Vec<&str> = variants.iter().map(|v| v.method.as_str()).collect();
             return Err(gdrecon::Error::InvalidArgument(format!(
@@ -122,6 +121,11 @@ pub fn check_common(common: &[String], variants: &[Variant]) -> gdrecon::Result<
         }
     }
     Ok(())
+}
+
+/// The `NAME` of a `NAME=VALUE` setting.
+fn param_name(assignment: &str) -> &str {
+    assignment.split('=').next().unwrap_or_default().trim()
 }
 
 /// An error naming the variant.
