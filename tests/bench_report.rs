@@ -57,6 +57,7 @@ fn sweep_writes_every_report_file() {
         [
             ("l2", "default"),
             ("l1", "default"),
+            ("l1", "fast"),
             ("l1", "reweight_steps=5"),
             ("l1", "published")
         ]
@@ -96,5 +97,84 @@ fn unknown_variant_is_named_in_the_error() {
             && err.contains("unknown preset 'fastest'")
             && err.contains("published"),
         "{err}"
+    );
+}
+
+/// `--baselines`: the base image and the OIDN images found beside the bundle become rows with
+/// their own relMSE, in italics in the summary, with the worst frame named, and never Pareto.
+#[test]
+fn baselines_are_read_beside_the_bundles() {
+    let dir = tempfile::tempdir().unwrap();
+    let sample = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data/sample.exr");
+    let bundle = dir.path().join("cornell_16spp.exr");
+    std::fs::copy(&sample, &bundle).unwrap();
+    let frame = gdrecon::io::read_bundle(&bundle, gdrecon::Policy::Replace).unwrap();
+    // Stand-ins for OIDN's outputs: the reference itself (error 0 would not be positive, so a
+    // slightly scaled one) and the base image.
+    let reference = frame.reference().unwrap().clone();
+    let near = gdrecon::Image::from_fn(3, frame.width(), frame.height(), |(c, x, y)| {
+        reference.at(c, x, y) * 1.01
+    });
+    std::fs::create_dir_all(dir.path().join("oidn")).unwrap();
+    std::fs::create_dir_all(dir.path().join("oidn-equal-time")).unwrap();
+    gdrecon::io::exr::write_rgb(dir.path().join("oidn/cornell_16spp.exr"), &near).unwrap();
+    gdrecon::io::exr::write_rgb(
+        dir.path().join("oidn-equal-time/cornell_16spp.exr"),
+        frame.color(),
+    )
+    .unwrap();
+    std::fs::write(
+        dir.path().join("oidn/timings.json"),
+        "{\"cornell_16spp\": 0.5}",
+    )
+    .unwrap();
+    let out = dir.path().join("report");
+    let output = gdrecon()
+        .arg("bench")
+        .arg(&bundle)
+        .args([
+            "--methods",
+            "l2",
+            "--baselines",
+            "--runs",
+            "1",
+            "--warmup",
+            "0",
+        ])
+        .arg("--out-dir")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let csv = std::fs::read_to_string(out.join("results.csv")).unwrap();
+    let rel = |setting: &str| -> f64 {
+        let line = csv
+            .lines()
+            .find(|l| l.split(',').nth(3) == Some(setting))
+            .unwrap_or_else(|| panic!("no {setting} row in\n{csv}"));
+        line.split(',').nth(13).unwrap().parse().unwrap()
+    };
+    let base = rel("base");
+    assert!(
+        (rel("oidn:equal-time") - base).abs() <= 1e-12 * base,
+        "{csv}"
+    );
+    assert!(rel("oidn") < 1e-3 * base && rel("l2") < base, "{csv}");
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(
+        summary.contains("| _oidn_ |") && summary.contains("(cornell_16spp.exr)"),
+        "{summary}"
+    );
+    let oidn_line = summary
+        .lines()
+        .find(|l| l.starts_with("| _oidn_ |"))
+        .unwrap();
+    assert!(
+        oidn_line.contains("| 0.500 |") && !oidn_line.contains("**yes**"),
+        "{oidn_line}"
     );
 }

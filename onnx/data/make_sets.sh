@@ -1,33 +1,53 @@
 #!/usr/bin/env bash
-# Render gdrecon's validation and training sets (outside the repository; never committed).
+# Render gdrecon's validation, test and training sets (outside the repository; never committed).
 #
-#   bash onnx/data/make_sets.sh [val|train|all]      (default: all)
+#   bash onnx/data/make_sets.sh [val|test|train|all]      (default: val then test)
 #
 # Needs `bash onnx/setup.sh` (the venv, with the gdrecon_py package that renders).
 # Environment: GDRECON_DATA (default $HOME/.cache/gdrecon/data), GDRECON_VENV (see setup.sh),
-# TRAIN_PERTURB (default 0:16), TRAIN_REF_SPP (default 0 = noisy only), VAL_REF_SPP (4096).
-# Already rendered bundles are skipped (--skip-existing), so an interrupted run resumes.
+# VAL_REF_SPP / TEST_REF_SPP (4096), TRAIN_PERTURB (default 0:16), TRAIN_REF_SPP (default 0 =
+# noisy only), TRAIN_DIR (default $GDRECON_DATA/train2).
+# Already rendered bundles are skipped (--skip-existing), so an interrupted run resumes; primal
+# layers missing from existing bundles are added (--add-primal) without touching their other
+# layers.
 #
-# Split rule (docs/data.md): validation = the six *base* scenes (no perturbation), render seed
-# 20000; training = perturbed variants only (perturbation family seed 0, indices 0..15), render
-# seed 1000. A perturbation never reproduces a base scene (every parameter is redrawn and the
-# camera is always rotated by >= 2 degrees), and all render seeds are hashed from distinct keys.
+# Split rule (docs/data.md, scenes.SPLITS): scene *families* are split three ways.
+#   val   = base scenes of cornell metals glass textures indirect sunsky studio dusk,
+#           render seed 20000 (tuning: methods, parameters, checkpoints are chosen on it)
+#   test  = base scenes of gaproom lamps cellar caustics fabric courtyard thin foliage,
+#           render seed 30000 (never used to choose anything)
+#   train = perturbed variants of atrium night shelf garden only (perturbation family seed 1,
+#           indices 0..15), render seed 40000, in $TRAIN_DIR.
+# The retired training set ($GDRECON_DATA/train: perturbations of the six original validation
+# families, perturbation seed 0, render seed 1000) trained the existing GradNet checkpoint and is
+# not used for new training.
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 venv="${GDRECON_VENV:-$HOME/.cache/gdrecon/venv}"
 py="$venv/bin/python"
 root="${GDRECON_DATA:-$HOME/.cache/gdrecon/data}"
-what="${1:-all}"
+what="${1:-eval}"
 source "$here/../env.sh"
+# this checkout's package first (the venv's editable install may point at another checkout)
+export PYTHONPATH="$(cd "$here/.." && pwd)${PYTHONPATH:+:$PYTHONPATH}"
+render() { "$py" -m gdrecon_py.data.render "$@"; }
 
-if [ "$what" = val ] || [ "$what" = all ]; then
+if [ "$what" = val ] || [ "$what" = eval ] || [ "$what" = all ]; then
   echo "# validation set -> $root/val"
-  time "$py" -m gdrecon_py.data.render --scene all --size 320x180 --spp 4,16,64 \
-      --ref-spp "${VAL_REF_SPP:-4096}" --seed 20000 --out "$root/val" --skip-existing
+  time render --scene val --size 320x180 --spp 4,16,64 --ref-spp "${VAL_REF_SPP:-4096}" --primal \
+      --seed 20000 --out "$root/val" --skip-existing
+  time render --add-primal "$root/val"
+fi
+if [ "$what" = test ] || [ "$what" = eval ] || [ "$what" = all ]; then
+  echo "# test set -> $root/test"
+  time render --scene test --size 320x180 --spp 4,16,64 --ref-spp "${TEST_REF_SPP:-4096}" --primal \
+      --seed 30000 --out "$root/test" --skip-existing
+  time render --add-primal "$root/test"
 fi
 if [ "$what" = train ] || [ "$what" = all ]; then
-  echo "# training set -> $root/train"
-  time "$py" -m gdrecon_py.data.render --scene all --size 256x256 --spp 4,16 \
-      --perturb "${TRAIN_PERTURB:-0:16}" --perturb-seed 0 --ref-spp "${TRAIN_REF_SPP:-0}" \
-      --seed 1000 --out "$root/train" --skip-existing
+  dir="${TRAIN_DIR:-$root/train2}"
+  echo "# training set -> $dir"
+  time render --scene train --size 256x256 --spp 4,16,64 \
+      --perturb "${TRAIN_PERTURB:-0:16}" --perturb-seed 1 --ref-spp "${TRAIN_REF_SPP:-0}" \
+      --seed 40000 --out "$dir" --skip-existing
 fi

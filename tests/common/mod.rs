@@ -123,8 +123,9 @@ pub fn reference_l2(frame: &Frame, alpha: f64) -> Vec<Vec<f64>> {
     weighted_lsq(&rows, &vec![1.0; rows.len()], n, &x0, 1e-10)
 }
 
-/// Naive IRLS for the group-L1 energy with the published weight rule and schedule.
-pub fn reference_l1(frame: &Frame, alpha: f64, steps: u32) -> Vec<Vec<f64>> {
+/// Naive IRLS for the group-L1 energy with the published weight rule and schedule, the
+/// regularisation held at `reg_floor` once it halves below it.
+pub fn reference_l1(frame: &Frame, alpha: f64, steps: u32, reg_floor: f64) -> Vec<Vec<f64>> {
     let rows = residual_rows(frame, alpha);
     let n = frame.width() * frame.height();
     let mut x: Vec<Vec<f64>> = (0..3)
@@ -140,7 +141,7 @@ pub fn reference_l1(frame: &Frame, alpha: f64, steps: u32) -> Vec<Vec<f64>> {
     let mut weights = vec![1.0; rows.len()];
     for k in 0..steps {
         if k > 0 {
-            let reg = 0.05 * 0.5f64.powi(k as i32 - 1);
+            let reg = (0.05 * 0.5f64.powi(k as i32 - 1)).max(reg_floor);
             for (row, wt) in rows.iter().zip(weights.iter_mut()) {
                 let e2: f64 = (0..3)
                     .map(|c| {

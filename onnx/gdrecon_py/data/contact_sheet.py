@@ -1,9 +1,14 @@
 """Contact sheet of the base scenes: the tone-mapped `reference` layer of one bundle per scene in
-a grid, each labelled with its name.
+a grid, each labelled with its name, split, reference spp and the reference's mean / max.
 
-  $GDRECON_PYTHON -m gdrecon_py.data.contact_sheet --val ~/.cache/gdrecon/data/val --out docs/scenes.png
+  $GDRECON_PYTHON -m gdrecon_py.data.contact_sheet --scenes val --dir ~/.cache/gdrecon/data/val \
+      --out docs/scenes.png
+  $GDRECON_PYTHON -m gdrecon_py.data.contact_sheet --scenes test --dir ~/.cache/gdrecon/data/test \
+      --out docs/scenes-test.png
 
-Takes `<scene>_64spp.exr` (or any `<scene>_*spp.exr` with a reference layer) from --val.
+Takes `<scene>_64spp.exr` (or any `<scene>_*spp.exr` with a reference layer) from the first
+--dir that has one (--layer picks another layer, e.g. `color` for frames without a reference).
+--scenes: 'all', a split name (train, val, test) or a comma list (scenes.families).
 Tone mapping: Reinhard x / (1 + x) per channel, then the sRGB transfer curve.
 """
 import argparse
@@ -27,24 +32,37 @@ def main(argv=None):
     from . import scenes
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--val", default=os.path.expanduser("~/.cache/gdrecon/data/val"))
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--dir", "--val", dest="dirs", action="append", default=None,
+                    help="folder(s) with bundles (default ~/.cache/gdrecon/data/val and .../test)")
+    ap.add_argument("--scenes", default="all", help="'all', a split name or a comma list")
+    ap.add_argument("--layer", default="reference", help="layer to show (default reference)")
+    ap.add_argument("--out", default=None, help="PNG to write")
+    ap.add_argument("--stats", action="store_true", help="print a Markdown table of the layer's "
+                    "mean, max, 99.9th percentile and fraction of values > 10 per scene")
     ap.add_argument("--cols", type=int, default=3)
     args = ap.parse_args(argv)
+    dirs = args.dirs or [os.path.expanduser(f"~/.cache/gdrecon/data/{d}") for d in ("val", "test")]
 
     tiles = []
-    for name in scenes.SCENES:
-        cands = sorted(glob.glob(os.path.join(args.val, f"{name}_64spp.exr"))) + \
-            sorted(glob.glob(os.path.join(args.val, f"{name}_*spp.exr")))
+    rows = []
+    for name in scenes.families(args.scenes):
+        cands = []
+        for d in dirs:
+            cands += sorted(glob.glob(os.path.join(d, f"{name}_64spp.exr"))) + \
+                sorted(glob.glob(os.path.join(d, f"{name}_*spp.exr")))
         img = None
         for path in cands:
             layers, hdr = read_bundle(path)
-            if "reference" in layers:
-                img = tonemap(layers["reference"])
-                spp = hdr.get("gdrecon_reference_spp", "?")
+            if args.layer in layers:
+                x = layers[args.layer]
+                img = tonemap(x)
+                spp = hdr.get("gdrecon_reference_spp", "?") if args.layer == "reference" else hdr.get("spp", "?")
+                stats = f"mean {x.mean():.3g}, max {x.max():.3g}"
+                rows.append(f"| {name} | {scenes.split_of(name)} | {x.mean():.4g} | {x.max():.4g} | "
+                            f"{np.quantile(x, 0.999):.4g} | {np.mean(x > 10):.2%} |")
                 break
         if img is None:
-            print(f"no bundle with a reference for {name} in {args.val}", file=sys.stderr)
+            print(f"no bundle with a {args.layer} layer for {name} in {dirs}", file=sys.stderr)
             continue
         tile = Image.fromarray(img)
         d = ImageDraw.Draw(tile)
@@ -52,11 +70,25 @@ def main(argv=None):
             font = ImageFont.load_default(size=16)
         except TypeError:  # old Pillow
             font = ImageFont.load_default()
-        label = f"{name} (reference {int(float(spp))} spp)"
+        try:
+            small = ImageFont.load_default(size=12)
+        except TypeError:
+            small = font
+        label = f"{name} [{scenes.split_of(name)}] ({args.layer} {int(float(spp))} spp)"
         x0, y0, x1, y1 = d.textbbox((4, 2), label, font=font)
         d.rectangle([0, 0, x1 + 4, y1 + 4], fill=(0, 0, 0))
         d.text((4, 2), label, fill=(255, 255, 255), font=font)
+        h = tile.size[1]
+        x0, y0, x1, y1 = d.textbbox((4, h - 16), stats, font=small)
+        d.rectangle([0, y0 - 2, x1 + 4, h], fill=(0, 0, 0))
+        d.text((4, h - 16), stats, fill=(255, 255, 255), font=small)
         tiles.append(tile)
+    if args.stats:
+        print(f"| scene | split | mean {args.layer} | max | 99.9th pct | values > 10 |")
+        print("| --- | --- | --- | --- | --- | --- |")
+        print("\n".join(rows))
+    if not args.out:
+        return
     if not tiles:
         sys.exit("no tiles")
     w, h = tiles[0].size

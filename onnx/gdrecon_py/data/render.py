@@ -11,13 +11,22 @@ renders replay the base paths' random numbers one pixel over:
 The spp of a bundle is split into k passes (distinct seeds per pass, one seed for the three crops
 of a pass): color = mean of pass means, variance = sample variance of the pass means / k.
 Features (albedo, shading normal, depth) come from the `aov` integrator; `reference` is an
-independent high-spp render (its own seeds) of the same crop.
+independent high-spp render (its own seeds) of the same crop; `primal` (with --primal) is a plain
+path-traced render of the same crop at 2x the bundle's spp (its own seeds), the equal-time
+baseline of a non-gradient renderer (header `gdrecon_primal_spp`).
 
 Examples:
   $GDRECON_PYTHON -m gdrecon_py.data.render --scene cornell --size 320x180 --spp 16 \
       --ref-spp 1024 --seed 1 --out examples/data --name sample
   $GDRECON_PYTHON -m gdrecon_py.data.render --scene all --size 256x256 --spp 4,16 \
       --perturb 0:16 --seed 1000 --out ~/.cache/gdrecon/data/train
+  $GDRECON_PYTHON -m gdrecon_py.data.render --scene test --size 320x180 --spp 4,16,64 \
+      --ref-spp 4096 --primal --seed 30000 --out ~/.cache/gdrecon/data/test
+  $GDRECON_PYTHON -m gdrecon_py.data.render --add-primal ~/.cache/gdrecon/data/val
+
+--scene takes a family, a split name (train, val, test; scenes.SPLITS), 'all', or a comma list.
+--add-primal adds the `primal` layer to existing bundles (files or folders) and leaves every
+other channel and header attribute bit-identical.
 """
 from __future__ import annotations
 
@@ -82,7 +91,8 @@ def derive_seed(*key):
 
 
 # streams: distinct first key component => independent random numbers
-NOISY, FEATURES, REFERENCE = 1, 2, 3
+NOISY, FEATURES, REFERENCE, PRIMAL = 1, 2, 3, 4
+PRIMAL_FACTOR = 2  # primal spp = PRIMAL_FACTOR x the bundle's spp (equal-time comparisons)
 
 
 def scene_rng(perturb_index, perturb_seed):
@@ -125,7 +135,10 @@ class Frame:
         self.name = scene_name
         self.width, self.height = (width + 1, height + 1) if full_film else (width, height)
         self.perturb_index = perturb_index
-        self.scene = mi.load_dict(d)
+        # serial loading: parallel loading appends emitter shapes in thread-completion order, so a
+        # scene with several emitter shapes could sample its lights in a different order from
+        # run to run (same seed, different pixels)
+        self.scene = mi.load_dict(d, parallel=False)
         self.sensor = self.scene.sensors()[0]
         self.params = mi.traverse(self.sensor)
         self.offset = (0, 0)
@@ -230,10 +243,17 @@ def render_reference(frame, spp, seed):
     return frame.render_chunked((0, 0), (REFERENCE, seed), spp)
 
 
+def render_primal(frame, spp, seed):
+    """Plain path-traced render of the (0,0) crop at `spp` (the primal spp, normally
+    PRIMAL_FACTOR x the bundle's spp); seeds derive_seed(PRIMAL, seed, spp, chunk) are independent
+    of the noisy, feature and reference seeds."""
+    return frame.render_chunked((0, 0), (PRIMAL, seed, spp), spp)
+
+
 # --------------------------------------------------------------------------------------------
 # EXR I/O
 
-F32_LAYERS = {"color", "dx", "dy", "variance", "reference"}
+F32_LAYERS = {"color", "dx", "dy", "variance", "reference", "primal"}
 COMPONENTS = {"normal": "XYZ", "depth": "Z"}
 
 
@@ -281,6 +301,71 @@ def read_bundle(path):
     return layers, f.header()
 
 
+def add_layers(path, layers, attrs=None):
+    """Add (or replace) f32 RGB layers and header attributes in an existing bundle, leaving every
+    other channel (its pixels and pixel type) and every other header attribute as they are."""
+    import OpenEXR
+
+    f = OpenEXR.File(path, separate_channels=True)
+    header = dict(f.header())
+    channels = {k: v.pixels for k, v in f.channels().items()}
+    H, W = next(iter(channels.values())).shape
+    for name, arr in layers.items():
+        arr = np.asarray(arr, np.float32)
+        if arr.shape != (H, W, 3):
+            raise ValueError(f"{path}: layer {name} has shape {arr.shape}, expected {(H, W, 3)}")
+        for i, c in enumerate("RGB"):
+            channels[f"{name}.{c}"] = np.ascontiguousarray(arr[..., i])
+    for key in ("channels", "dataWindow", "displayWindow"):  # derived from the pixels on write
+        header.pop(key, None)
+    header.update(attrs or {})
+    tmp = path + ".tmp"
+    OpenEXR.File(header, channels).write(tmp)
+    os.replace(tmp, path)
+
+
+def add_primal(paths, force=False, manifest="manifest.jsonl"):
+    """Add the `primal` layer (PRIMAL_FACTOR x spp, seeds of render_primal) to existing bundles,
+    rebuilding each scene from the bundle's provenance attributes. Bundles that already have one
+    are skipped unless force. Appends a row per bundle to the folder's manifest."""
+    files = []
+    for p in paths:
+        files += sorted(glob.glob(os.path.join(p, "*.exr"))) if os.path.isdir(p) else [p]
+    frames = {}
+    for path in files:
+        layers, hdr = read_bundle(path)
+        if "primal" in layers and not force:
+            print(f"# skip {path}: has a primal layer", flush=True)
+            continue
+        name = hdr["gdrecon_scene"]
+        pi = int(hdr.get("gdrecon_perturb", -1))
+        pi = None if pi < 0 else pi
+        pseed = int(hdr.get("gdrecon_perturb_seed", 0))
+        md = hdr.get("gdrecon_max_depth")
+        md = None if md is None else int(md)
+        H, W = layers["color"].shape[:2]
+        key = (name, pi, pseed, md, W, H)
+        if key not in frames:
+            frames.clear()  # one scene in memory at a time (bundles of a scene are adjacent)
+            frames[key] = Frame(name, W, H, pi, pseed, md)
+        spp = int(round(float(hdr["spp"])))
+        pspp = PRIMAL_FACTOR * spp
+        fseed = int(hdr["gdrecon_seed"])
+        t1 = time.time()
+        primal = render_primal(frames[key], pspp, fseed)
+        dt = time.time() - t1
+        add_layers(path, {"primal": primal}, {"gdrecon_primal_spp": float(pspp)})
+        rec = {"file": os.path.basename(path), "op": "add_primal", "scene": name, "perturb": pi, "seed": fseed,
+               "spp": spp, "primal_spp": pspp, "primal_seconds": round(dt, 2)}
+        if "reference" in layers:
+            rec["relmse_color"] = relmse(layers["color"], layers["reference"])
+            rec["relmse_primal"] = relmse(primal, layers["reference"])
+        print(json.dumps(rec), flush=True)
+        if manifest:
+            with open(os.path.join(os.path.dirname(os.path.abspath(path)), manifest), "a") as fh:
+                fh.write(json.dumps(rec) + "\n")
+
+
 # --------------------------------------------------------------------------------------------
 # CLI
 
@@ -304,7 +389,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     ap.add_argument("--scene", default="cornell",
-                    help="scene name, comma list, or 'all' (%s)" % ", ".join(scenes.SCENES))
+                    help="scene name, split name (%s), comma list, or 'all' (%s)"
+                    % (", ".join(scenes.SPLITS), ", ".join(scenes.SCENES)))
     ap.add_argument("--size", default="320x180", help="W x H of the frame (default 320x180)")
     ap.add_argument("--spp", default="16", help="comma list of spp; one bundle per value (default 16)")
     ap.add_argument("--ref-spp", type=int, default=0, help="spp of the reference layer (0: none)")
@@ -315,23 +401,39 @@ def main(argv=None):
     ap.add_argument("--perturb", default=None,
                     help="training perturbation index 'I' or range 'A:B' (default: base scene)")
     ap.add_argument("--perturb-seed", type=int, default=0, help="seed of the perturbation family")
+    ap.add_argument("--primal", action="store_true",
+                    help=f"add a `primal` layer: plain path tracing at {PRIMAL_FACTOR}x the bundle's spp")
+    ap.add_argument("--add-primal", nargs="+", metavar="PATH", default=None,
+                    help="add the primal layer to existing bundles (files or folders) and exit; "
+                    "other layers and attributes stay bit-identical")
+    ap.add_argument("--force", action="store_true", help="with --add-primal: replace an existing primal")
     ap.add_argument("--max-depth", type=int, default=None, help="override the integrator's max_depth")
     ap.add_argument("--no-features", action="store_true", help="skip albedo/normal/depth")
     ap.add_argument("--full-float", action="store_true", help="write features as f32 too")
-    ap.add_argument("--out", required=True, help="output folder")
+    ap.add_argument("--out", default=None, help="output folder (required unless --add-primal)")
     ap.add_argument("--name", default=None, help="file name stem (default <scene>[_p<I>]_<spp>spp)")
     ap.add_argument("--skip-existing", action="store_true",
                     help="do not re-render a scene/perturbation whose bundles all exist")
     ap.add_argument("--manifest", default="manifest.jsonl", help="jsonl log in --out ('' for none)")
     args = ap.parse_args(argv)
 
-    names = list(scenes.SCENES) if args.scene == "all" else args.scene.split(",")
-    for n in names:
-        if n not in scenes.SCENES:
-            ap.error(f"unknown scene '{n}' (known: {', '.join(scenes.SCENES)})")
+    if args.add_primal:
+        add_primal(args.add_primal, args.force, args.manifest)
+        return
+    if not args.out:
+        ap.error("--out is required")
+    try:
+        names = scenes.families(args.scene)
+    except KeyError as e:
+        ap.error(str(e.args[0]))
     W, H = parse_size(args.size)
     spps = [int(s) for s in args.spp.split(",")]
     perturbs = parse_perturb(args.perturb)
+    if perturbs != [None]:
+        held_out = [n for n in names if scenes.split_of(n) != "train"]
+        if held_out:
+            print(f"# warning: perturbing {', '.join(held_out)}: validation/test families are never "
+                  "training data (docs/data.md)", flush=True)
     os.makedirs(args.out, exist_ok=True)
 
     t_all = time.time()
@@ -362,6 +464,11 @@ def main(argv=None):
                                        args.feature_spp or None)
                 if ref is not None:
                     layers["reference"] = ref
+                t_primal = 0.0
+                if args.primal:
+                    t2 = time.time()
+                    layers["primal"] = render_primal(frame, PRIMAL_FACTOR * spp, fseed)
+                    t_primal = time.time() - t2
                 attrs = {
                     "spp": float(spp),
                     "gdrecon_scene": name,
@@ -373,9 +480,13 @@ def main(argv=None):
                 }
                 if ref is not None:
                     attrs["gdrecon_reference_spp"] = float(args.ref_spp)
+                if args.primal:
+                    attrs["gdrecon_primal_spp"] = float(PRIMAL_FACTOR * spp)
+                if args.max_depth is not None:
+                    attrs["gdrecon_max_depth"] = int(args.max_depth)
                 path = os.path.join(args.out, stem + ".exr")
                 write_bundle(path, layers, attrs, feature_half=not args.full_float)
-                dt = time.time() - t1
+                dt = time.time() - t1 - t_primal
                 rec = {"file": os.path.basename(path), "scene": name, "perturb": pi, "seed": fseed,
                        "spp": spp, "size": [W, H], "passes": min(args.passes, spp),
                        "seconds": round(dt, 2)}
@@ -383,6 +494,11 @@ def main(argv=None):
                     rec["ref_spp"] = args.ref_spp
                     rec["ref_seconds"] = round(t_ref, 2)
                     rec["relmse_color"] = relmse(layers["color"], ref)
+                if args.primal:
+                    rec["primal_spp"] = PRIMAL_FACTOR * spp
+                    rec["primal_seconds"] = round(t_primal, 2)
+                    if ref is not None:
+                        rec["relmse_primal"] = relmse(layers["primal"], ref)
                 print(json.dumps(rec), flush=True)
                 if args.manifest:
                     with open(os.path.join(args.out, args.manifest), "a") as fh:

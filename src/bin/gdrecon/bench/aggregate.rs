@@ -15,6 +15,10 @@ pub struct Point {
     pub seconds: f64,
     /// Frames (scenes) averaged.
     pub frames: usize,
+    /// The largest relMSE over the frames, and its frame.
+    pub worst: (f64, String),
+    /// Not a variant of ours (`bench --baselines`): never marked Pareto, never plotted.
+    pub baseline: bool,
     /// No other variant is at least as good in both and better in one.
     pub pareto: bool,
 }
@@ -65,6 +69,11 @@ fn points(rows: &[&Row]) -> Vec<Point> {
         .map(|v| {
             let of: Vec<&Row> = rows.iter().copied().filter(|r| r.variant == v).collect();
             let errors: Vec<f64> = of.iter().filter_map(|r| r.rel_mse).collect();
+            let worst = of
+                .iter()
+                .filter_map(|r| Some((r.rel_mse?, r.frame.clone())))
+                .max_by(|a, b| a.0.total_cmp(&b.0))
+                .unwrap_or((f64::NAN, String::new()));
             let mut secs: Vec<f64> = of.iter().map(|r| r.median_s).collect();
             secs.sort_by(f64::total_cmp);
             Point {
@@ -73,6 +82,8 @@ fn points(rows: &[&Row]) -> Vec<Point> {
                 rel_mse: geometric_mean(&errors),
                 seconds: middle(&secs),
                 frames: of.len(),
+                worst,
+                baseline: of[0].method == super::baseline::METHOD,
                 pareto: false,
             }
         })
@@ -102,16 +113,18 @@ pub fn middle(sorted: &[f64]) -> f64 {
     }
 }
 
-/// Marks the points that no other point dominates (lower or equal error and time, one lower).
+/// Marks the variants that no other variant dominates (lower or equal error and time, one
+/// lower); baselines take no part.
 pub fn mark_pareto(points: &mut [Point]) {
     let dominated: Vec<bool> = points
         .iter()
         .map(|p| {
-            points.iter().any(|q| {
-                q.rel_mse <= p.rel_mse
-                    && q.seconds <= p.seconds
-                    && (q.rel_mse < p.rel_mse || q.seconds < p.seconds)
-            })
+            p.baseline
+                || points.iter().filter(|q| !q.baseline).any(|q| {
+                    q.rel_mse <= p.rel_mse
+                        && q.seconds <= p.seconds
+                        && (q.rel_mse < p.rel_mse || q.seconds < p.seconds)
+                })
         })
         .collect();
     for (p, d) in points.iter_mut().zip(dominated) {
@@ -130,6 +143,8 @@ mod tests {
             rel_mse,
             seconds,
             frames: 1,
+            worst: (rel_mse, name.into()),
+            baseline: false,
             pareto: false,
         }
     }

@@ -16,6 +16,8 @@ pub struct BenchFrame {
     pub scale: f64,
     /// The validated frame.
     pub frame: Frame,
+    /// The file it was read from (None for the synthetic frame).
+    pub path: Option<std::path::PathBuf>,
 }
 
 /// Reads a bundle and names it from its file name.
@@ -32,6 +34,7 @@ pub fn load(path: &Path) -> gdrecon::Result<BenchFrame> {
         spp: name_spp.or(frame.spp()),
         scale: 1.0,
         frame,
+        path: Some(path.to_owned()),
     })
 }
 
@@ -45,6 +48,7 @@ pub fn synthetic(spec: &str) -> gdrecon::Result<BenchFrame> {
         spp: frame.spp(),
         scale: 1.0,
         frame,
+        path: None,
     })
 }
 
@@ -119,6 +123,7 @@ pub fn resized(source: &BenchFrame, scale: f64) -> gdrecon::Result<BenchFrame> {
         spp: source.spp,
         scale,
         frame: builder.build(Policy::Replace)?,
+        path: None,
     })
 }
 

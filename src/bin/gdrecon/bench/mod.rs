@@ -12,6 +12,7 @@
 //! plots `pareto.png` / `pareto.svg`.
 
 mod aggregate;
+mod baseline;
 mod frames;
 mod measure;
 mod plot;
@@ -73,6 +74,12 @@ pub struct BenchArgs {
     /// Write the report here: results.csv, results.json, summary.md, pareto.png, pareto.svg.
     #[arg(long)]
     out_dir: Option<PathBuf>,
+    /// Also report, per frame with a reference, the base image itself (`base`) and Intel OIDN
+    /// on the base image (`oidn`) and on a 2x-spp primal render (`oidn:equal-time`), read from
+    /// `<folder>/oidn/` and `<folder>/oidn-equal-time/` beside each bundle (written by
+    /// `python -m gdrecon_py.oidn <folder>`); their seconds are OIDN's own, not timed here.
+    #[arg(long)]
+    baselines: bool,
     /// Heading of summary.md.
     #[arg(long, default_value = "gdrecon bench")]
     title: String,
@@ -111,7 +118,13 @@ pub fn run(args: BenchArgs) -> gdrecon::Result<()> {
     };
     let load_before = summary::load_average();
     print_header();
-    let rows = time_all(&context, &variants, &frames, &scales, schedule)?;
+    let mut rows = time_all(&context, &variants, &frames, &scales, schedule)?;
+    if args.baselines {
+        for row in baseline::rows(&frames, context.threads())? {
+            print_row(&row);
+            rows.push(row);
+        }
+    }
     if let Some(csv) = &args.csv {
         report::write(csv, &report::plain_csv(&rows))?;
     }
@@ -254,7 +267,15 @@ fn write_report(dir: &Path, header: &summary::Header, rows: &[Row]) -> gdrecon::
         &dir.join("summary.md"),
         &summary::markdown(header, rows, &panels),
     )?;
-    plot::write(&dir.join("pareto.png"), &dir.join("pareto.svg"), &panels)?;
+    // The plot shows our variants only: baselines carry another program's time, or none.
+    let ours: Vec<aggregate::Panel> = panels
+        .iter()
+        .map(|p| aggregate::Panel {
+            spp: p.spp,
+            points: p.points.iter().filter(|q| !q.baseline).cloned().collect(),
+        })
+        .collect();
+    plot::write(&dir.join("pareto.png"), &dir.join("pareto.svg"), &ours)?;
     say!(
         "wrote {}/{{results.csv, results.json, summary.md, pareto.png, pareto.svg}}",
         dir.display()

@@ -30,6 +30,7 @@ pub fn markdown(header: &Header, rows: &[Row], panels: &[Panel]) -> String {
     for panel in panels {
         panel_table(&mut out, panel);
     }
+    family_tables(&mut out, rows, panels);
     frame_table(&mut out, rows);
     scaling_table(&mut out, rows);
     out
@@ -66,19 +67,76 @@ fn panel_table(out: &mut String, panel: &Panel) {
     );
     let _ = writeln!(
         out,
-        "| variant | relMSE (geo. mean) | median s | Pareto |\n| --- | --- | --- | --- |"
+        "| variant | relMSE (geo. mean) | worst frame | median s | Pareto |\n\
+         | --- | --- | --- | --- | --- |"
     );
     for p in &panel.points {
         let mark = if p.pareto { "**yes**" } else { "" };
+        // Baselines in italics: not ours, timed elsewhere (or not at all).
+        let name = if p.baseline {
+            format!("_{}_", p.variant)
+        } else {
+            format!("`{}`", p.variant)
+        };
         let _ = writeln!(
             out,
-            "| `{}` | {:.4e} | {} | {mark} |",
-            p.variant,
+            "| {name} | {:.4e} | {:.4e} ({}) | {} | {mark} |",
             p.rel_mse,
-            seconds(p.seconds)
+            p.worst.0,
+            p.worst.1,
+            if p.seconds.is_nan() {
+                "-".to_owned()
+            } else {
+                seconds(p.seconds)
+            }
         );
     }
     out.push('\n');
+}
+
+/// One table per spp: relMSE per family (scene) and variant, variants in the panel's order.
+fn family_tables(out: &mut String, rows: &[Row], panels: &[Panel]) {
+    for panel in panels {
+        let at: Vec<&Row> = rows
+            .iter()
+            .filter(|r| r.scale == 1.0 && r.spp == Some(panel.spp) && r.rel_mse.is_some())
+            .collect();
+        let mut scenes: Vec<&str> = Vec::new();
+        for r in &at {
+            if !scenes.contains(&r.scene.as_str()) {
+                scenes.push(&r.scene);
+            }
+        }
+        if scenes.len() < 2 {
+            continue;
+        }
+        let _ = writeln!(
+            out,
+            "## {} spp per family (relMSE)\n\n| variant | {} |\n|{}",
+            panel.spp,
+            scenes.join(" | "),
+            " --- |".repeat(scenes.len() + 1)
+        );
+        for p in &panel.points {
+            let cells: Vec<String> = scenes
+                .iter()
+                .map(|s| {
+                    let errors: Vec<f64> = at
+                        .iter()
+                        .filter(|r| r.variant == p.variant && r.scene == *s)
+                        .filter_map(|r| r.rel_mse)
+                        .collect();
+                    if errors.is_empty() {
+                        "-".to_owned()
+                    } else {
+                        format!("{:.3e}", super::aggregate::geometric_mean(&errors))
+                    }
+                })
+                .collect();
+            let _ = writeln!(out, "| `{}` | {} |", p.variant, cells.join(" | "));
+        }
+        out.push('\n');
+    }
 }
 
 /// Every measured row.

@@ -1,0 +1,82 @@
+//! Never worse than doing nothing: on the guard frames (`tests/data/guard/`: small renders of
+//! validation and test families, an HDR-emitter frame and a dim one among them, with 4096 spp
+//! references) a reconstruction must have a lower relMSE than the base image it was given.
+//!
+//! Not every method meets that yet. The pairs that do not are listed in [`KNOWN_WORSE`], and
+//! the test holds both sides: every other pair must beat the base, and every listed pair must
+//! still fail (so a fix has to strike it from the list, and the list cannot go stale).
+
+use std::path::{Path, PathBuf};
+
+use gdrecon::{io, metrics, Context, ContextOptions, Method, MethodConfig, Plan, Policy, Progress};
+
+/// The methods held to the bar.
+const METHODS: [Method; 4] = [
+    Method::PoissonL1,
+    Method::Frgr,
+    Method::GradNet,
+    Method::Auto,
+];
+
+/// (frame, method) pairs measured worse than their input (relMSE at the time of writing, base
+/// in brackets). HDR emitters in view break FRGR (and so `auto`, which picks it) and GradNet,
+/// whose published pre-processing assumes radiance in [0, 1]; issue "Accurate on scenes it was
+/// never tuned on" tracks them.
+const KNOWN_WORSE: &[(&str, &str)] = &[
+    ("lamps_16spp.exr", "frgr"),     // 3.39 (0.0996)
+    ("lamps_16spp.exr", "auto"),     // 3.39 (0.0996)
+    ("lamps_16spp.exr", "gradnet"),  // 32.6 (0.0996)
+    ("studio_16spp.exr", "gradnet"), // 1.35 (0.443)
+    ("thin_16spp.exr", "gradnet"),   // 0.0467 (0.0181)
+];
+
+fn guard_frames() -> Vec<PathBuf> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/guard");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "exr"))
+        .collect();
+    files.sort();
+    files
+}
+
+#[test]
+fn methods_beat_the_base_image_on_the_guard_frames() {
+    let frames = guard_frames();
+    assert!(
+        frames.len() >= 4,
+        "expected the guard frames, found {frames:?}"
+    );
+    let context = Context::new(ContextOptions::with_threads(Some(2))).unwrap();
+    let mut wrong = Vec::new();
+    let mut hdr = false;
+    for path in &frames {
+        let frame = io::read_bundle(path, Policy::Replace).unwrap();
+        let reference = frame.reference().expect("guard frames have a reference");
+        hdr |= reference.as_slice().iter().any(|&v| v > 10.0);
+        let base = metrics::compare(frame.color(), reference).unwrap().rel_mse;
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        for method in METHODS.into_iter().filter(|m| m.is_built()) {
+            let config = MethodConfig::default_for(method);
+            let mut plan = Plan::new(&context, &config, frame.width(), frame.height()).unwrap();
+            let (out, _) = plan.execute(&frame, &Progress::none()).unwrap();
+            assert!(out.all_finite(), "{name}: {method} output is not finite");
+            let error = metrics::compare(&out, reference).unwrap().rel_mse;
+            eprintln!("{name}: {method} {error:.4e} (base {base:.4e})");
+            let known = KNOWN_WORSE.contains(&(name.as_str(), method.name()));
+            match (error < base, known) {
+                (false, false) => wrong.push(format!("{name}: {method} {error:.4e} >= base {base:.4e}")),
+                (true, true) => wrong.push(format!(
+                    "{name}: {method} {error:.4e} now beats base {base:.4e}: strike it from KNOWN_WORSE"
+                )),
+                _ => {}
+            }
+        }
+    }
+    assert!(
+        hdr,
+        "no guard frame has reference pixels above 10 (an HDR emitter)"
+    );
+    assert!(wrong.is_empty(), "{}", wrong.join("\n"));
+}
