@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Regenerates the benchmark report docs/bench/ with one command (issue #8): run time against
-# error for every method variant, 720p timings, and resolution scaling.
+# error for every method and the baselines (base image, OIDN same spp, OIDN equal time) on the
+# validation and test splits, 720p timings, and resolution scaling.
 #
 #   bash docs/bench.sh
 #
@@ -24,11 +25,15 @@ if [ -n "${THREADS:-}" ]; then threads=(--threads "$THREADS"); fi
 
 shopt -s nullglob
 val=("$data"/val/*_*spp.exr)
+test=("$data"/test/*_*spp.exr)
 hd=("$data"/bench720/cornell_16spp.exr "$data"/bench720/sunsky_16spp.exr)
-if [ "${#val[@]}" -ne 18 ]; then
-  echo "bench.sh: expected 18 validation bundles in $data/val, found ${#val[@]} (see docs/data.md)" >&2
-  exit 1
-fi
+for split in val test; do
+  declare -n set="$split"
+  if [ "${#set[@]}" -ne 24 ]; then
+    echo "bench.sh: expected 24 bundles in $data/$split, found ${#set[@]} (bash onnx/data/make_sets.sh $split)" >&2
+    exit 1
+  fi
+done
 for f in "${hd[@]}"; do
   if [ ! -f "$f" ]; then
     echo "bench.sh: missing $f (render it as docs/benchmarks.md says)" >&2
@@ -47,10 +52,17 @@ cargo build --release --locked --bin gdrecon
 bin="$target/release/gdrecon"
 start=$SECONDS
 
-echo "== 1/4 validation set: every variant, runs 3 (about 10 minutes)"
-"$bin" bench "${val[@]}" --methods l2,l1,frgr,gradnet --sweep --runs 3 --warmup 1 \
-  "${threads[@]}" --out-dir "$out" \
-  --title "Validation set: 320 x 180, six scenes, 4 / 16 / 64 spp, 4096 spp references"
+echo "== 0/4 OIDN outputs for the baselines (skipped where they exist)"
+"$GDRECON_PYTHON" -m gdrecon_py.oidn "$data/val" "$data/test"
+
+echo "== 1/4 validation and test splits: every method, the baselines, runs 3 (about 12 minutes)"
+for split in val test; do
+  declare -n set="$split"
+  "$bin" bench "${set[@]}" --settings l2,l1,l1:fast,frgr,gradnet,auto --baselines --runs 3 \
+    --warmup 1 "${threads[@]}" --out-dir "$out/$split" \
+    --title "gdrecon bench: $split split (320 x 180, 8 families, 4 / 16 / 64 spp, 4096 spp references)"
+done
+cp "$out/val/summary.md" "$out/summary.md"
 
 echo "== 2/4 1280 x 720: every method, runs 5 (about 8 minutes, frgr most of it)"
 "$bin" bench "${hd[@]}" --methods l2,l1,frgr,gradnet --runs 5 --warmup 1 \
@@ -68,7 +80,7 @@ echo "== 4/4 scaling: frgr at 0.5, 1 x of cornell 720p, runs 1 (it needs ~35 s p
   --title "Resolution scaling: frgr (cornell, 720p = 1x, one run, no warm-up)"
 
 # One page: the validation summary, then the others with their headings one level down.
-for part in 720p scaling scaling-filter; do
+for part in test 720p scaling scaling-filter; do
   {
     echo
     echo "<!-- $part/summary.md; its CSV, JSON and plots are in $part/ -->"
