@@ -58,7 +58,7 @@ echo "== 0/4 OIDN outputs for the baselines (skipped where they exist)"
 echo "== 1/4 validation and test splits: every method, the baselines, runs 3 (about 12 minutes)"
 for split in val test; do
   declare -n set="$split"
-  "$bin" bench "${set[@]}" --settings l2,l1,l1:fast,frgr,gradnet,auto --baselines --runs 3 \
+  "$bin" bench "${set[@]}" --settings l2,l1,l1:fast,frgr,gradnet,gradnet:range_limit=0,auto --baselines --runs 3 \
     --warmup 1 "${threads[@]}" --out-dir "$out/$split" \
     --title "gdrecon bench: $split split (320 x 180, 8 families, 4 / 16 / 64 spp, 4096 spp references)"
 done

@@ -96,6 +96,32 @@ fn pipeline_matches_the_python_reference() {
     }
 }
 
+/// The emitter rule (`range_limit`, the pipeline's step 6b) on a frame with bulbs in view
+/// (the `lamps` guard frame; fixture from `make_fixtures --emitter`, onnxruntime): the same
+/// pixels keep their base colour before the bias correction, so the output matches the Python
+/// reference; without the rule it does not, and its error is far larger.
+#[test]
+fn emitter_rule_matches_the_python_reference() {
+    let frame = crop("emitter");
+    let want = expected("emitter_out.npy");
+    let ours = run(&frame, GradNetConfig::default()).unwrap();
+    assert_close(&ours, &want, "emitter");
+    let mut release = GradNetConfig::default();
+    release.range_limit = 0.0;
+    let without = run(&frame, release).unwrap();
+    let reference = frame.reference().unwrap();
+    let (with_rule, no_rule) = (
+        gdrecon::metrics::compare(&ours, reference).unwrap().rel_mse,
+        gdrecon::metrics::compare(&without, reference)
+            .unwrap()
+            .rel_mse,
+    );
+    assert!(
+        no_rule > 10.0 * with_rule,
+        "release {no_rule:e}, rule {with_rule:e}"
+    );
+}
+
 #[test]
 fn tiles_match_the_untiled_run() {
     let frame = sample();

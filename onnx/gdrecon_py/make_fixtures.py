@@ -13,6 +13,10 @@ export) and the numpy reference pipeline (gdrecon_py/pipeline.py):
   <crop>_nofeat_out.npy         pipeline.reconstruct with the torch no-feature model
   bias_out.npy, bias_color.npy, bias_corrected.npy
                                 pipeline.bias_correct on random 23 x 61 x 3 data
+  emitter.exr, emitter_out.npy  (--emitter, no checkpoints needed) the guard frame
+                                tests/data/guard/lamps_16spp.exr (bulbs of radiance up to 424 in
+                                view) through pipeline.reconstruct with onnx/gradnet.onnx run by
+                                onnxruntime: step 6b (keep_emitters) is exercised
 
 Run (needs the checkpoints of docs/gradnet.md; takes a few seconds):
     source onnx/env.sh
@@ -49,7 +53,11 @@ def main(argv=None):
     ap.add_argument("--out", default=os.path.join(REPO, "tests", "fixtures", "gradnet"))
     ap.add_argument("--full", default=os.path.join(RUNS, "full", "last.pt"))
     ap.add_argument("--nofeat", default=os.path.join(RUNS, "nofeat", "last.pt"))
+    ap.add_argument("--emitter", action="store_true",
+                    help="write only the emitter fixture (onnxruntime and onnx/gradnet.onnx)")
     args = ap.parse_args(argv)
+    if args.emitter:
+        return emitter_fixture(args.out)
     torch.set_num_threads(2)
     os.makedirs(args.out, exist_ok=True)
     full, _ = ex.load_checkpoint(args.full)
@@ -76,6 +84,20 @@ def main(argv=None):
     save("bias_color.npy", color)
     save("bias_corrected.npy", pl.bias_correct(out, color))
     print("wrote", args.out)
+
+
+def emitter_fixture(out_dir):
+    """emitter.exr (a copy of the lamps guard frame) and emitter_out.npy."""
+    import shutil
+
+    src = os.path.join(REPO, "tests", "data", "guard", "lamps_16spp.exr")
+    fr = pl.read_frame(src)
+    out = pl.reconstruct(fr, pl.ort_runner(os.path.join(REPO, "onnx", "gradnet.onnx")))
+    kept = int((pl.keep_emitters(np.zeros_like(fr["color"]), fr["color"], fr.get("variance"))
+                != 0).any(-1).sum())
+    shutil.copyfile(src, os.path.join(out_dir, "emitter.exr"))
+    np.save(os.path.join(out_dir, "emitter_out.npy"), np.asarray(out, np.float32))
+    print(f"emitter: {fr['color'].shape[1]} x {fr['color'].shape[0]}, {kept} pixels keep the base colour")
 
 
 if __name__ == "__main__":

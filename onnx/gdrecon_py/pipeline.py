@@ -15,6 +15,11 @@ Steps, for one frame (arrays H x W x C, float32, linear radiance):
  5. run the network with the per-channel batch: data N x 8 x H x W (N x 1 for the no-feature
     model), grad N x 2 x H x W, N = 3 (R, G, B); output N x 1 x H x W.
  6. crop to H x W, inverse mu-law C^-1, clamp >= 0.
+ 6b. (deviation from the release, `keep_emitters`) where a base pixel is beyond the network's
+    range (a channel above EMITTER_LIMIT = 2) and known to a relative standard deviation below
+    EMITTER_NOISE = 0.1 (an emitter seen directly, not a firefly), the output takes the base
+    colour: the mu-law input assumes radiance in [0, 1], the network cannot output an emitter,
+    and the bias correction's gain would spread the missing energy over the frame.
  7. Gaussian bias correction: kernel radius 45, sigma 15 (91 taps, normalised), separable,
     zero-padded borders; gain = (blur(R+G+B of input colour) + 1e-9) /
     (blur(R+G+B of output) + 1e-9), multiplied into all three channels.
@@ -29,6 +34,8 @@ from .mulaw import C, C_inv, S  # the float32 numpy mu-law (mu = 16)
 FEAT_CLAMP = 1e5
 BIAS_RADIUS = 45
 BIAS_SIGMA = 15.0
+EMITTER_LIMIT = 2.0
+EMITTER_NOISE = 0.1
 
 
 def read_frame(path):
@@ -168,7 +175,20 @@ def bias_correct(out, color_in):
     return (out * (bi / bo)[..., None]).astype(np.float32)
 
 
-def reconstruct(frame, run, use_features=None, correct_bias=True):
+def keep_emitters(out, color, variance=None, limit=EMITTER_LIMIT, noise=EMITTER_NOISE):
+    """Step 6b: the base colour where any channel exceeds `limit` with a relative standard
+    deviation below `noise` (no variance layer: brightness alone decides); `limit` 0 or less
+    returns `out` unchanged (the release)."""
+    if limit <= 0:
+        return out
+    bright = color > limit
+    if variance is not None:
+        bright &= np.sqrt(np.maximum(variance, 0.0)) < noise * color
+    keep = bright.any(axis=-1, keepdims=True)
+    return np.where(keep, color, out).astype(np.float32)
+
+
+def reconstruct(frame, run, use_features=None, correct_bias=True, range_limit=EMITTER_LIMIT):
     """Full reference pipeline. `run(data, grad) -> N x 1 x Hp x Wp` (numpy in/out; a torch
     model or an onnxruntime session wrapped, see `torch_runner` / `ort_runner`).
     use_features=None: follow the model (runner's `data_channels`: 8 -> features, 1 -> none),
@@ -183,6 +203,7 @@ def reconstruct(frame, run, use_features=None, correct_bias=True):
     y = np.asarray(run(data, grad), np.float32)[:, 0, :H, :W]     # 3 x H x W
     out = np.maximum(C_inv(y), 0.0).transpose(1, 2, 0)
     out = np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+    out = keep_emitters(out, fr["color"], fr.get("variance"), range_limit)
     if correct_bias:
         out = bias_correct(out, fr["color"])
     return out

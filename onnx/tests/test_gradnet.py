@@ -341,3 +341,16 @@ def test_validation_frame_parity():
     if "gradnet.onnx" not in SHIPPED:
         pytest.skip("no shipped model")
     _frame_parity(pl.read_frame(f), "gradnet.onnx")
+
+
+def test_keep_emitters_keeps_quiet_bright_pixels_only():
+    """Step 6b: a bright, low-noise pixel (an emitter) keeps the base colour; a bright noisy
+    one (a firefly) and a dim one keep the network's output; limit 0 is the release."""
+    color = np.array([[[5.0, 5.0, 5.0], [5.0, 0.1, 0.1], [0.5, 0.5, 0.5]]], np.float32)
+    variance = np.array([[[0.01] * 3, [4.0, 1e-4, 1e-4], [0.0] * 3]], np.float32)
+    out = np.full_like(color, 0.25)
+    kept = pl.keep_emitters(out, color, variance)
+    assert np.array_equal(kept[0, 0], color[0, 0])
+    assert np.array_equal(kept[0, 1], out[0, 1]) and np.array_equal(kept[0, 2], out[0, 2])
+    assert np.array_equal(pl.keep_emitters(out, color, None)[0, 1], color[0, 1])
+    assert np.array_equal(pl.keep_emitters(out, color, variance, limit=0), out)
