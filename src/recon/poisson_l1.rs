@@ -92,12 +92,10 @@ impl PoissonL1Config {
     /// worse than the converged answer.
     pub fn fast() -> Self {
         PoissonL1Config {
-            alpha: DEFAULT_ALPHA,
-            reweight_steps: 20,
             cg_iterations: 8,
             cg_tolerance: 1e-2,
-            preconditioned: true,
             reg_floor: 0.0,
+            ..Self::default()
         }
     }
 
@@ -105,12 +103,11 @@ impl PoissonL1Config {
     /// 20 reweighting steps x 50 unpreconditioned CG iterations, no early stop.
     pub fn published() -> Self {
         PoissonL1Config {
-            alpha: DEFAULT_ALPHA,
-            reweight_steps: 20,
             cg_iterations: 50,
             cg_tolerance: 0.0,
             preconditioned: false,
             reg_floor: 0.0,
+            ..Self::default()
         }
     }
 }
