@@ -192,12 +192,13 @@ fn converged_l1(frame: &Frame, steps: u32, reg_min: f64, tol: f64) -> (gdrecon::
                 (0.05 * 0.5f64.powi(k as i32 - 1)).max(reg_min),
             );
         }
+        let scale = wt.scale();
         let its = x
             .par_iter_mut()
             .enumerate()
             .map(|(c, xc)| {
                 let b = wt.rhs(&ib[c], &gx[c], &gy[c]);
-                pcg(&wt, &dct, &b, xc, tol)
+                pcg(&wt, &dct, &scale, &b, xc, tol)
             })
             .collect::<Vec<_>>();
         iterations.push(its.into_iter().max().unwrap_or(0));
@@ -319,16 +320,15 @@ impl Weights {
     }
 }
 
-/// Preconditioned CG on `A x = b` from the given `x`, to `||r|| <= tol ||b||`; returns the
-/// iterations taken.
-fn pcg(wt: &Weights, dct: &Dct, b: &[f64], x: &mut [f64], tol: f64) -> usize {
+/// Preconditioned CG on `A x = b` from the given `x`, to `||r|| <= tol ||b||`, the DCT solve
+/// scaled by `s` (`Weights::scale`) as preconditioner; returns the iterations taken.
+fn pcg(wt: &Weights, dct: &Dct, s: &[f64], b: &[f64], x: &mut [f64], tol: f64) -> usize {
     let n = b.len();
     let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| a * b).sum::<f64>();
-    let s = wt.scale();
     let precondition = |r: &[f64]| -> Vec<f64> {
-        let mut z: Vec<f64> = r.iter().zip(&s).map(|(r, s)| r * s).collect();
+        let mut z: Vec<f64> = r.iter().zip(s).map(|(r, s)| r * s).collect();
         dct.solve(&mut z);
-        z.iter_mut().zip(&s).for_each(|(z, s)| *z *= s);
+        z.iter_mut().zip(s).for_each(|(z, s)| *z *= s);
         z
     };
     let mut q = vec![0.0; n];

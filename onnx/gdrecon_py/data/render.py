@@ -261,8 +261,6 @@ def write_bundle(path, layers, attrs=None, feature_half=True):
     """Write one multi-layer, single-part, ZIP-compressed scanline EXR with channels
     `layer.R/G/B` (`normal.X/Y/Z`, `depth.Z`). f32 for color/dx/dy/variance/reference; features
     f16 when feature_half. `attrs` go into the header (e.g. spp)."""
-    import OpenEXR
-
     channels = {}
     for name, arr in layers.items():
         arr = np.asarray(arr)
@@ -274,9 +272,21 @@ def write_bundle(path, layers, attrs=None, feature_half=True):
             raise ValueError(f"layer {name}: {arr.shape[-1]} components, expected {comps}")
         for i, c in enumerate(comps):
             channels[f"{name}.{c}"] = np.ascontiguousarray(arr[..., i].astype(dtype))
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    for k, v in (attrs or {}).items():
-        header[k] = v
+    write_exr(path, channels, scanline_header(attrs))
+
+
+def scanline_header(attrs=None):
+    """The header of every EXR written here: ZIP-compressed scan lines, plus `attrs`."""
+    import OpenEXR
+
+    return {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **(attrs or {})}
+
+
+def write_exr(path, channels, header):
+    """Write `channels` (name -> 2-D array) with `header`, atomically (a .tmp file renamed over
+    `path`, so an interrupted run never leaves a truncated file that --skip-existing trusts)."""
+    import OpenEXR
+
     tmp = path + ".tmp"
     OpenEXR.File(header, channels).write(tmp)
     os.replace(tmp, path)
@@ -284,7 +294,8 @@ def write_bundle(path, layers, attrs=None, feature_half=True):
 
 def read_bundle(path):
     """(layers, header): layers maps layer name -> float32 array (H,W,C), in component order
-    R,G,B / X,Y,Z / Z; header is the EXR header dict."""
+    R,G,B / X,Y,Z / Z; header is the EXR header dict. Undotted channels (a plain RGB image)
+    form the layer ''."""
     import OpenEXR
 
     f = OpenEXR.File(path, separate_channels=True)
@@ -297,7 +308,8 @@ def read_bundle(path):
     layers = {}
     for layer, comps in groups.items():
         comps = sorted(comps, key=lambda c: order.get(c.upper(), 9))
-        layers[layer] = np.stack([chans[f"{layer}.{c}"].astype(np.float32) for c in comps], axis=-1)
+        name = (lambda c: f"{layer}.{c}") if layer else (lambda c: c)
+        layers[layer] = np.stack([chans[name(c)].astype(np.float32) for c in comps], axis=-1)
     return layers, f.header()
 
 
@@ -319,9 +331,7 @@ def add_layers(path, layers, attrs=None):
     for key in ("channels", "dataWindow", "displayWindow"):  # derived from the pixels on write
         header.pop(key, None)
     header.update(attrs or {})
-    tmp = path + ".tmp"
-    OpenEXR.File(header, channels).write(tmp)
-    os.replace(tmp, path)
+    write_exr(path, channels, header)
 
 
 def add_primal(paths, force=False, manifest="manifest.jsonl"):
