@@ -55,17 +55,19 @@ start=$SECONDS
 echo "== 0/4 OIDN outputs for the baselines (skipped where they exist)"
 "$GDRECON_PYTHON" -m gdrecon_py.oidn "$data/val" "$data/test"
 
-echo "== 1/4 validation and test splits: every method, the baselines, runs 3 (about 12 minutes)"
+echo "== 1/4 validation and test splits: every method, the prior paths, the baselines, runs 3 (about 16 minutes)"
 for split in val test; do
   declare -n set="$split"
-  "$bin" bench "${set[@]}" --settings l2,l1,l1:fast,frgr,gradnet,gradnet:range_limit=0,auto --baselines --runs 3 \
+  "$bin" bench "${set[@]}" \
+    --settings l2,l1,l1:fast,frgr,gradnet,gradnet:range_limit=0,prior,l1:prior,l2:data=prior,frgr:guide=prior,auto \
+    --baselines --runs 3 \
     --warmup 1 "${threads[@]}" --out-dir "$out/$split" \
     --title "gdrecon bench: $split split (320 x 180, 8 families, 4 / 16 / 64 spp, 4096 spp references)"
 done
 cp "$out/val/summary.md" "$out/summary.md"
 
-echo "== 2/4 1280 x 720: every method, runs 5 (about 8 minutes, frgr most of it)"
-"$bin" bench "${hd[@]}" --methods l2,l1,frgr,gradnet --runs 5 --warmup 1 \
+echo "== 2/4 1280 x 720: every method and the prior paths, runs 5 (about 9 minutes, frgr most of it)"
+"$bin" bench "${hd[@]}" --settings l2,l1,frgr,gradnet,prior,l1:prior --runs 5 --warmup 1 \
   "${threads[@]}" --out-dir "$out/720p" \
   --title "1280 x 720, 16 spp, 256 spp references"
 

@@ -22,6 +22,16 @@
  * counted (the report says how many), or rejected with "strict" = true. The output never
  * contains NaN or Inf.
  *
+ * The prior (the product's main path). The optional image "prior" (RGB) is a denoiser's output
+ * for this frame, computed from "color" as rendered (not from any average of shifted
+ * estimates). The prior paths use it as given: method "auto", method "prior" (the prior alone),
+ * l1 with gdr_filter_set_preset(f, "prior") (or "data" = GDR_DATA_PRIOR, weight "prior_alpha"),
+ * l2 likewise, frgr with "guide" = GDR_FRGR_GUIDE_PRIOR. Without it they compute it with Intel
+ * Open Image Denoise 2, loaded at run time (never linked) from the context string "oidn_path",
+ * else OIDN_DYLIB_PATH, a libOpenImageDenoise.so* next to libgdrecon, the project's Python
+ * environment; when none loads, gdr_filter_execute fails with GDR_ERROR_UNSUPPORTED and a message
+ * listing where it looked. Other methods never load it.
+ *
  * Handles. gdr_context and gdr_filter are reference counted: *_retain adds a reference,
  * *_release(&h) drops one and sets h to NULL (releasing NULL is a no-op). A filter keeps its
  * context alive. gdr_frame is owned by its creator and freed by gdr_frame_release(&frame).
@@ -101,6 +111,15 @@
 // Filter `"guide"`: no pre-denoiser, the noisy colour itself (an ablation).
 #define GDR_FRGR_GUIDE_NONE 2
 
+// Filter `"guide"`: the prior (image `"prior"` if set, else Open Image Denoise on `"color"`).
+#define GDR_FRGR_GUIDE_PRIOR 3
+
+// Screened Poisson `"data"`: the data term is the base image `"color"` (the default).
+#define GDR_DATA_COLOR 0
+
+// Screened Poisson `"data"`: the data term is the prior, weighted by `"prior_alpha"`.
+#define GDR_DATA_PRIOR 1
+
 // Status codes returned by every fallible function (`GDR_ERROR_NONE` is success).
 enum gdr_error
 #ifdef __cplusplus
@@ -137,7 +156,8 @@ enum gdr_error
     // The GradNet model file is damaged, not the exported one (SHA-256 mismatch) or rejected
     // by ONNX Runtime.
     GDR_ERROR_INVALID_MODEL = 12,
-    // ONNX Runtime failed while configuring a session or running the network.
+    // A library loaded at run time failed while running: ONNX Runtime (configuring a session,
+    // running the network) or Open Image Denoise (computing a prior).
     GDR_ERROR_RUNTIME = 13,
 };
 #ifndef __cplusplus
@@ -264,7 +284,7 @@ gdr_error gdr_context_set_int(gdr_context *ctx, const char *name, int32_t value)
 // Read an integer parameter into `*value`: `"threads"` (the pool's thread count once committed, else the setting) or `"log_level"`.
 gdr_error gdr_context_get_int(const gdr_context *ctx, const char *name, int32_t *value);
 
-// Set a string parameter before commit: `"onnxruntime_path"` (ONNX Runtime library) or `"model_path"` (GradNet model); NULL clears it.
+// Set a string parameter before commit: `"onnxruntime_path"` (ONNX Runtime library), `"model_path"` (GradNet model) or `"oidn_path"` (Open Image Denoise library, for the prior); NULL clears it.
 //
 // Paths are stored as given and only opened when a method needs them.
 gdr_error gdr_context_set_string(gdr_context *ctx, const char *name, const char *value);
@@ -277,7 +297,7 @@ gdr_error gdr_context_set_log_callback(gdr_context *ctx, gdr_log_fn callback, vo
 // Committing twice is an error (`GDR_ERROR_INVALID_OPERATION`); so is setting `threads` or a path afterwards.
 gdr_error gdr_context_commit(gdr_context *ctx);
 
-// Create a filter running `method` (`"l2"`, `"l1"`, `"frgr"`, `"gradnet"`, `"auto"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
+// Create a filter running `method` (`"l2"`, `"l1"`, `"frgr"`, `"gradnet"`, `"prior"`, `"auto"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
 gdr_error gdr_filter_new(gdr_context *ctx, const char *method, gdr_filter **out);
 
 // Add a reference to `filter`; each reference is dropped by one `gdr_filter_release`.
@@ -286,13 +306,18 @@ gdr_error gdr_filter_retain(gdr_filter *filter);
 // Drop the reference `*filter` and set `*filter` to NULL (no-op when `*filter` is NULL); the last one frees the filter.
 gdr_error gdr_filter_release(gdr_filter **filter);
 
+// Reset every parameter of the filter's method to one of its presets (`"prior"`, `"fast"`, `"published"` for `"l1"`; docs/PARAMETERS.md and `gdrecon params` list them); `"spp"` and `"strict"` are kept.
+//
+// An unknown preset is `GDR_ERROR_INVALID_ARGUMENT`, with a message that lists the method's presets.
+gdr_error gdr_filter_set_preset(gdr_filter *filter, const char *name);
+
 // Set a float parameter of the filter's method (see `gdr_method_param`, or docs/PARAMETERS.md), or `"spp"` (0 = unknown).
 //
 // An unknown name, a parameter of another type or a value out of its range is
 // `GDR_ERROR_INVALID_ARGUMENT`, with a message that lists the names or states the range.
 gdr_error gdr_filter_set_float(gdr_filter *filter, const char *name, float value);
 
-// Set an integer parameter of the filter's method, or a choice by its index (filter `"guide"`: a `GDR_FRGR_GUIDE_*` value).
+// Set an integer parameter of the filter's method, or a choice by its index (filter `"guide"`: a `GDR_FRGR_GUIDE_*` value; l2 and l1 `"data"`: a `GDR_DATA_*` value).
 gdr_error gdr_filter_set_int(gdr_filter *filter, const char *name, int32_t value);
 
 // Set a boolean parameter of the filter's method, or `"strict"` (NaN/Inf/negative input is an error instead of replaced).

@@ -6,6 +6,7 @@
 //! count: every parallel reduction in gdrecon has a fixed order.
 
 use std::any::Any;
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use crate::error::{Error, Result};
@@ -16,12 +17,27 @@ use crate::error::{Error, Result};
 pub struct ContextOptions {
     /// Worker threads; `None` uses every available core.
     pub threads: Option<usize>,
+    /// The Open Image Denoise library the prior paths load (`libOpenImageDenoise.so.2`); `None`
+    /// searches `OIDN_DYLIB_PATH`, the gdrecon library's folder and the project's Python
+    /// environment. Only a plan that must compute a prior loads it.
+    pub oidn: Option<PathBuf>,
 }
 
 impl ContextOptions {
     /// Options with `threads` worker threads (`None`: every available core).
     pub fn with_threads(threads: Option<usize>) -> Self {
-        ContextOptions { threads }
+        ContextOptions {
+            threads,
+            ..Self::default()
+        }
+    }
+
+    /// These options with an explicit Open Image Denoise library.
+    pub fn with_oidn(self, path: impl Into<PathBuf>) -> Self {
+        ContextOptions {
+            oidn: Some(path.into()),
+            ..self
+        }
     }
 }
 
@@ -29,8 +45,10 @@ impl ContextOptions {
 #[derive(Clone, Debug)]
 pub struct Context {
     pool: Arc<rayon::ThreadPool>,
-    #[cfg_attr(not(feature = "gradnet"), allow(dead_code))]
+    #[cfg_attr(not(any(feature = "gradnet", feature = "oidn")), allow(dead_code))]
     shared: Arc<Shared>,
+    #[cfg_attr(not(feature = "oidn"), allow(dead_code))]
+    oidn: Option<PathBuf>,
 }
 
 /// Objects that plans of one context share (loaded models), by key. Type-erased so that the
@@ -68,6 +86,7 @@ impl Context {
         Ok(Context {
             pool: Arc::new(pool),
             shared: Arc::default(),
+            oidn: options.oidn,
         })
     }
 
@@ -78,7 +97,7 @@ impl Context {
 
     /// The object stored under `key`, made by `make` on first request and shared by every
     /// plan of this context (and its clones) afterwards. A failed `make` stores nothing.
-    #[cfg_attr(not(feature = "gradnet"), allow(dead_code))]
+    #[cfg_attr(not(any(feature = "gradnet", feature = "oidn")), allow(dead_code))]
     pub(crate) fn shared<T: Any + Send + Sync>(
         &self,
         key: &str,
@@ -94,6 +113,16 @@ impl Context {
         items.retain(|(k, _)| k != key);
         items.push((key.to_owned(), item.clone()));
         Ok(item)
+    }
+
+    /// This context's Open Image Denoise device (its thread count), opening the library and
+    /// making the device on first request.
+    #[cfg(feature = "oidn")]
+    pub(crate) fn denoiser(&self) -> Result<Arc<crate::recon::prior::oidn::Device>> {
+        use crate::recon::prior::oidn;
+        self.shared("oidn device", || {
+            oidn::Device::new(oidn::library(self.oidn.as_deref())?, self.threads())
+        })
     }
 
     /// Runs `f` on this context's pool.

@@ -50,6 +50,10 @@ pub enum Error {
     #[error("ONNX Runtime: {0}")]
     Runtime(String),
 
+    /// Intel Open Image Denoise failed while computing a prior.
+    #[error("Open Image Denoise: {0}")]
+    Denoiser(String),
+
     /// The caller's progress callback asked to stop.
     #[error("cancelled by the caller")]
     Cancelled,

@@ -40,11 +40,14 @@ pub enum Layer {
     Depth,
     /// Converged image, RGB; evaluation data only, never used by a method. Optional.
     Reference,
+    /// A denoiser's output for this frame (e.g. Intel Open Image Denoise on `color`), RGB.
+    /// Optional: the methods that use a prior compute one when it is absent.
+    Prior,
 }
 
 impl Layer {
     /// Every layer, in bundle order.
-    pub const ALL: [Layer; 8] = [
+    pub const ALL: [Layer; 9] = [
         Layer::Color,
         Layer::Dx,
         Layer::Dy,
@@ -53,6 +56,7 @@ impl Layer {
         Layer::Normal,
         Layer::Depth,
         Layer::Reference,
+        Layer::Prior,
     ];
 
     /// The layer's name in a bundle (`color`, `dx`, ...).
@@ -66,6 +70,7 @@ impl Layer {
             Layer::Normal => "normal",
             Layer::Depth => "depth",
             Layer::Reference => "reference",
+            Layer::Prior => "prior",
         }
     }
 
@@ -94,9 +99,12 @@ impl Layer {
     }
 
     /// Whether a negative value is invalid and gets replaced (colour and variance; the
-    /// reference is held to the same rule since it is a colour).
+    /// reference and the prior are held to the same rule since they are colours).
     pub fn must_be_nonnegative(self) -> bool {
-        matches!(self, Layer::Color | Layer::Variance | Layer::Reference)
+        matches!(
+            self,
+            Layer::Color | Layer::Variance | Layer::Reference | Layer::Prior
+        )
     }
 
     /// Looks a layer up by its bundle name, case-insensitively.
@@ -121,7 +129,7 @@ impl std::fmt::Display for Layer {
 /// variance, reference and sample count. See the module documentation for conventions.
 #[derive(Clone, Debug)]
 pub struct Frame {
-    layers: [Option<Image>; 8],
+    layers: [Option<Image>; Layer::ALL.len()],
     width: usize,
     height: usize,
     spp: Option<f32>,
@@ -195,6 +203,11 @@ impl Frame {
         self.layer(Layer::Reference)
     }
 
+    /// A denoiser's output for this frame, if the caller gave one.
+    pub fn prior(&self) -> Option<&Image> {
+        self.layer(Layer::Prior)
+    }
+
     /// Samples per pixel of the base image, when known.
     pub fn spp(&self) -> Option<f32> {
         self.spp
@@ -230,7 +243,7 @@ impl Frame {
 /// 3-channel slice of the view) and planar caller buffers all work; views are copied once.
 #[derive(Clone, Debug, Default)]
 pub struct FrameBuilder {
-    layers: [Option<Image>; 8],
+    layers: [Option<Image>; Layer::ALL.len()],
     spp: Option<f32>,
 }
 

@@ -26,6 +26,8 @@
 #[allow(unsafe_code)]
 pub mod capi;
 pub mod context;
+#[cfg(any(feature = "gradnet", feature = "oidn"))]
+mod dylib;
 pub mod error;
 pub mod frame;
 pub mod image;

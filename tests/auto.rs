@@ -1,5 +1,7 @@
-//! `auto` picks per frame and says why: FRGR (`frgr`) when the spp is known, GradNet when it is
-//! not, L1 when GradNet cannot run.
+//! `auto` picks per frame and says why: the L1 prior path when a prior is given or Open Image
+//! Denoise loads (tests/prior.rs); without it (`use_prior` false here, so that OIDN's presence
+//! does not matter) FRGR (`frgr`) when the spp is known, GradNet when it is not, L1 when
+//! GradNet cannot run.
 
 use std::path::Path;
 
@@ -12,6 +14,13 @@ fn sample() -> Frame {
         Policy::Replace,
     )
     .unwrap()
+}
+
+/// `auto` without its prior path.
+fn no_prior() -> AutoConfig {
+    let mut config = AutoConfig::default();
+    config.use_prior = false;
+    config
 }
 
 fn run(frame: &Frame, config: AutoConfig) -> Report {
@@ -40,8 +49,9 @@ fn note(report: &Report) -> &str {
 fn known_spp_runs_frgr() {
     let frame = sample();
     assert!(frame.spp().is_some());
-    let report = run(&frame, AutoConfig::default());
+    let report = run(&frame, no_prior());
     assert_eq!(report.method, "auto -> frgr");
+    assert!(note(&report).contains("no prior (use_prior is false)"));
     assert!(note(&report).contains("is known"), "{}", note(&report));
 }
 
@@ -53,11 +63,11 @@ fn unknown_spp_runs_gradnet_or_falls_back_to_l1_with_the_reason() {
         .build(Policy::Replace)
         .unwrap();
     if cfg!(feature = "gradnet") {
-        let report = run(&frame, AutoConfig::default());
+        let report = run(&frame, no_prior());
         assert_eq!(report.method, "auto -> gradnet", "{:?}", report.notes);
         assert!(note(&report).contains("with features"));
     }
-    let mut config = AutoConfig::default();
+    let mut config = no_prior();
     config.gradnet.model = Some("/nonexistent/gradnet.onnx".into());
     let report = run(&frame, config);
     assert_eq!(report.method, "auto -> l1");

@@ -56,16 +56,18 @@ fn sweep_writes_every_report_file() {
         variants,
         [
             ("l2", "default"),
+            ("l2", "data=prior"),
             ("l1", "default"),
             ("l1", "fast"),
             ("l1", "reweight_steps=5"),
-            ("l1", "published")
+            ("l1", "published"),
+            ("l1", "prior")
         ]
     );
     for r in &rows {
         assert_eq!(r.len(), 16, "{r:?}");
         // Stage medians: l2 times its right-hand side and its DCT solve.
-        if r[2] == "l2" {
+        if r[2] == "l2" && r[3] == "default" {
             assert!(
                 r[15].starts_with("rhs=") && r[15].contains(";dct solve="),
                 "{r:?}"

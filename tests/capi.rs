@@ -226,7 +226,7 @@ fn filter_parameters_reach_the_method() {
             GDR_ERROR_INVALID_ARGUMENT,
         );
         assert!(
-            msg.contains("one of rdfc, l1, none") && msg.contains("index, 0 to 2"),
+            msg.contains("one of rdfc, l1, none, prior") && msg.contains("index, 0 to 3"),
             "{msg}"
         );
         ok(gdr_filter_set_int(
@@ -1027,5 +1027,88 @@ fn write_reference_for_c() {
         let out = rust_output(&frame, &config);
         let bytes: Vec<u8> = out.iter().flat_map(|v| v.to_le_bytes()).collect();
         std::fs::write(dir.join(format!("ref_{name}.bin")), bytes).unwrap();
+    }
+}
+
+#[test]
+fn the_prior_image_and_presets_reach_the_method() {
+    let frame = frame();
+    // A caller's prior: any RGB image (here the reference), handed over as image "prior".
+    let prior = frame.reference().unwrap().clone();
+    let with_prior = frame
+        .clone()
+        .into_builder()
+        .image(Layer::Prior, prior.clone())
+        .build(gdrecon::Policy::Strict)
+        .unwrap();
+    let expected = rust_output(
+        &with_prior,
+        &MethodConfig::PoissonL1(gdrecon::recon::PoissonL1Config::prior()),
+    );
+    let mut bufs = packed_inputs(&frame);
+    bufs.push((Layer::Prior, prior.to_interleaved()));
+    let ctx = context();
+    let l1 = filter(ctx, "l1");
+    let alone = filter(ctx, "prior");
+    let (mut out, mut out_alone) = (vec![0f32; W * H * 3], vec![0f32; W * H * 3]);
+    unsafe {
+        let msg = fails(
+            gdr_filter_set_preset(l1, c"nope".as_ptr()),
+            GDR_ERROR_INVALID_ARGUMENT,
+        );
+        assert!(
+            msg.contains("unknown preset 'nope'") && msg.contains("fast, published, prior"),
+            "{msg}"
+        );
+        ok(gdr_filter_set_preset(l1, c"prior".as_ptr()));
+        let (mut data, mut weight) = (-1i32, 0f32);
+        ok(gdr_filter_get_int(l1, c"data".as_ptr(), &mut data));
+        ok(gdr_filter_get_float(
+            l1,
+            c"prior_alpha".as_ptr(),
+            &mut weight,
+        ));
+        assert_eq!((data, weight), (GDR_DATA_PRIOR, 2.5));
+        set_packed(l1, &bufs);
+        run(l1, &mut out);
+        set_packed(alone, &bufs);
+        run(alone, &mut out_alone);
+        let mut report = null();
+        ok(gdr_filter_get_report(alone, &mut report));
+        let report = CStr::from_ptr(report).to_str().unwrap().to_owned();
+        assert!(report.contains("given by the caller"), "{report}");
+        gdr_filter_release(&mut { l1 });
+        gdr_filter_release(&mut { alone });
+        gdr_context_release(&mut { ctx });
+    }
+    assert!(same_bits(&out, &expected));
+    assert!(same_bits(&out_alone, &prior.to_interleaved()));
+}
+
+#[test]
+fn the_context_takes_an_oidn_path() {
+    let mut ctx = null_mut();
+    unsafe {
+        ok(gdr_context_new(&mut ctx));
+        ok(gdr_context_set_string(
+            ctx,
+            c"oidn_path".as_ptr(),
+            c"/opt/oidn/lib/libOpenImageDenoise.so.2".as_ptr(),
+        ));
+        let msg = fails(
+            gdr_context_set_string(ctx, c"oidn".as_ptr(), c"x".as_ptr()),
+            GDR_ERROR_INVALID_ARGUMENT,
+        );
+        assert!(
+            msg.contains("onnxruntime_path, model_path, oidn_path"),
+            "{msg}"
+        );
+        ok(gdr_context_commit(ctx));
+        let msg = fails(
+            gdr_context_set_string(ctx, c"oidn_path".as_ptr(), null()),
+            GDR_ERROR_INVALID_OPERATION,
+        );
+        assert!(msg.contains("already committed"), "{msg}");
+        ok(gdr_context_release(&mut ctx));
     }
 }

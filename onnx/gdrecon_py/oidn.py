@@ -17,6 +17,12 @@ Outputs, next to the bundles, read by `gdrecon bench` (which computes their relM
 It prints a relMSE table (gdrecon_py.metrics.relmse) as it goes.
 
   $GDRECON_PYTHON -m gdrecon_py.oidn ~/.cache/gdrecon/data/val [--force]
+
+`--fixtures` writes instead the parity fixtures of the library's own OIDN prior
+(tests/prior.rs): tests/fixtures/prior/<stem>_oidn.npy, (H, W, 3) float32, for every guard frame
+tests/data/guard/<stem>.exr (HDR bulbs, a dim cellar, ...), through `denoise` below.
+
+  $GDRECON_PYTHON -m gdrecon_py.oidn --fixtures
 """
 from __future__ import annotations
 
@@ -71,9 +77,15 @@ def main(argv=None):
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    ap.add_argument("folder", nargs="+", help="folders of bundles")
+    ap.add_argument("folder", nargs="*", help="folders of bundles")
     ap.add_argument("--force", action="store_true", help="recompute outputs that exist")
+    ap.add_argument("--fixtures", action="store_true",
+                    help="write tests/fixtures/prior/<stem>_oidn.npy for the guard frames")
     args = ap.parse_args(argv)
+    if args.fixtures:
+        return write_fixtures()
+    if not args.folder:
+        ap.error("give at least one folder of bundles (or --fixtures)")
 
     warm = False
     for folder in args.folder:
@@ -114,6 +126,21 @@ def main(argv=None):
                       flush=True)
         with open(timings_path, "w") as fh:
             json.dump(timings, fh, indent=1, sort_keys=True)
+
+
+def write_fixtures():
+    """OIDN on every guard frame's base image, for the Rust parity test of the prior."""
+    from .data.render import read_bundle
+
+    repo = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    out_dir = os.path.join(repo, "tests", "fixtures", "prior")
+    os.makedirs(out_dir, exist_ok=True)
+    for path in sorted(glob.glob(os.path.join(repo, "tests", "data", "guard", "*.exr"))):
+        stem = os.path.splitext(os.path.basename(path))[0]
+        layers, _ = read_bundle(path)
+        out = denoise(layers["color"], layers.get("albedo"), layers.get("normal"))
+        np.save(os.path.join(out_dir, stem + "_oidn.npy"), np.asarray(out, np.float32))
+        print(f"{stem}: {out.shape[1]} x {out.shape[0]}, relMSE {relmse(out, layers['reference']):.4g}")
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ struct Settings {
     threads: Option<usize>,
     onnxruntime_path: Option<String>,
     model_path: Option<String>,
+    oidn_path: Option<String>,
     committed: Option<Context>,
 }
 
@@ -185,7 +186,7 @@ pub unsafe extern "C" fn gdr_context_get_int(
     })
 }
 
-/// Set a string parameter before commit: `"onnxruntime_path"` (ONNX Runtime library) or `"model_path"` (GradNet model); NULL clears it.
+/// Set a string parameter before commit: `"onnxruntime_path"` (ONNX Runtime library), `"model_path"` (GradNet model) or `"oidn_path"` (Open Image Denoise library, for the prior); NULL clears it.
 ///
 /// Paths are stored as given and only opened when a method needs them.
 #[no_mangle]
@@ -211,6 +212,10 @@ pub unsafe extern "C" fn gdr_context_set_string(
             "model_path" => {
                 frozen(&s, name)?;
                 s.model_path = value;
+            }
+            "oidn_path" => {
+                frozen(&s, name)?;
+                s.oidn_path = value;
             }
             _ => return unknown(name, "gdr_context_set_string"),
         }
@@ -241,7 +246,11 @@ pub unsafe extern "C" fn gdr_context_commit(ctx: *mut gdr_context) -> gdr_error 
         let ctx = context_ref(ctx)?;
         let mut s = ctx.settings();
         frozen(&s, "the context")?;
-        let pool = Context::new(ContextOptions::with_threads(s.threads))?;
+        let mut options = ContextOptions::with_threads(s.threads);
+        if let Some(path) = &s.oidn_path {
+            options = options.with_oidn(path);
+        }
+        let pool = Context::new(options)?;
         let threads = pool.threads();
         s.committed = Some(pool);
         drop(s);
@@ -266,7 +275,7 @@ fn frozen(s: &Settings, what: &str) -> CResult {
 
 fn unknown(name: &str, function: &str) -> CResult {
     let valid = match function {
-        "gdr_context_set_string" => "onnxruntime_path, model_path",
+        "gdr_context_set_string" => "onnxruntime_path, model_path, oidn_path",
         _ => "threads, log_level",
     };
     err(

@@ -52,10 +52,19 @@ pub const GDR_FRGR_GUIDE_RDFC: i32 = 0;
 pub const GDR_FRGR_GUIDE_L1: i32 = 1;
 /// Filter `"guide"`: no pre-denoiser, the noisy colour itself (an ablation).
 pub const GDR_FRGR_GUIDE_NONE: i32 = 2;
+/// Filter `"guide"`: the prior (image `"prior"` if set, else Open Image Denoise on `"color"`).
+pub const GDR_FRGR_GUIDE_PRIOR: i32 = 3;
+/// Screened Poisson `"data"`: the data term is the base image `"color"` (the default).
+pub const GDR_DATA_COLOR: i32 = 0;
+/// Screened Poisson `"data"`: the data term is the prior, weighted by `"prior_alpha"`.
+pub const GDR_DATA_PRIOR: i32 = 1;
 
-// The C constants are the indices of the guide choice in the filter's parameter table.
+// The C constants are the indices of the choices in the methods' parameter tables.
 const _: () = {
+    use crate::recon::{DataTerm, FrgrGuide};
     assert!(GDR_FRGR_GUIDE_RDFC == 0 && GDR_FRGR_GUIDE_L1 == 1 && GDR_FRGR_GUIDE_NONE == 2);
+    assert!(GDR_FRGR_GUIDE_PRIOR == 3 && FrgrGuide::ALL.len() == 4);
+    assert!(GDR_DATA_COLOR == 0 && GDR_DATA_PRIOR == 1 && DataTerm::ALL.len() == 2);
 };
 
 impl State {
@@ -201,7 +210,7 @@ fn lock(f: &gdr_filter) -> CResult<MutexGuard<'_, State>> {
     }
 }
 
-/// Create a filter running `method` (`"l2"`, `"l1"`, `"frgr"`, `"gradnet"`, `"auto"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
+/// Create a filter running `method` (`"l2"`, `"l1"`, `"frgr"`, `"gradnet"`, `"prior"`, `"auto"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_new(
     ctx: *mut gdr_context,
@@ -268,6 +277,27 @@ pub unsafe extern "C" fn gdr_filter_release(filter: *mut *mut gdr_filter) -> gdr
     })
 }
 
+/// Reset every parameter of the filter's method to one of its presets (`"prior"`, `"fast"`, `"published"` for `"l1"`; docs/PARAMETERS.md and `gdrecon params` list them); `"spp"` and `"strict"` are kept.
+///
+/// An unknown preset is `GDR_ERROR_INVALID_ARGUMENT`, with a message that lists the method's presets.
+#[no_mangle]
+pub unsafe extern "C" fn gdr_filter_set_preset(
+    filter: *mut gdr_filter,
+    name: *const c_char,
+) -> gdr_error {
+    with_filter("gdr_filter_set_preset", filter, |f, st| {
+        let mut config = MethodConfig::preset(st.config.method(), c_str(name, "name")?)?;
+        if let Some(c) = config.gradnet_mut() {
+            let (runtime, model) = f.context.gradnet_paths();
+            c.runtime = runtime.map(Into::into);
+            c.model = model.map(Into::into);
+        }
+        st.config = config;
+        st.dirty = true;
+        Ok(())
+    })
+}
+
 /// Set a float parameter of the filter's method (see `gdr_method_param`, or docs/PARAMETERS.md), or `"spp"` (0 = unknown).
 ///
 /// An unknown name, a parameter of another type or a value out of its range is
@@ -283,7 +313,7 @@ pub unsafe extern "C" fn gdr_filter_set_float(
     })
 }
 
-/// Set an integer parameter of the filter's method, or a choice by its index (filter `"guide"`: a `GDR_FRGR_GUIDE_*` value).
+/// Set an integer parameter of the filter's method, or a choice by its index (filter `"guide"`: a `GDR_FRGR_GUIDE_*` value; l2 and l1 `"data"`: a `GDR_DATA_*` value).
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_set_int(
     filter: *mut gdr_filter,
@@ -366,7 +396,7 @@ fn image_slot(name: &str) -> CResult<Option<Layer>> {
         _ => err(
             GDR_ERROR_INVALID_ARGUMENT,
             format!(
-                "unknown image '{name}', expected one of: color, dx, dy, variance, albedo, normal, depth, output"
+                "unknown image '{name}', expected one of: color, dx, dy, variance, albedo, normal, depth, prior, output"
             ),
         ),
     }

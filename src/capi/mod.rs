@@ -96,7 +96,8 @@ pub enum gdr_error {
     /// The GradNet model file is damaged, not the exported one (SHA-256 mismatch) or rejected
     /// by ONNX Runtime.
     GDR_ERROR_INVALID_MODEL = 12,
-    /// ONNX Runtime failed while configuring a session or running the network.
+    /// A library loaded at run time failed while running: ONNX Runtime (configuring a session,
+    /// running the network) or Open Image Denoise (computing a prior).
     GDR_ERROR_RUNTIME = 13,
 }
 
@@ -156,7 +157,7 @@ impl From<Error> for CapiError {
             Error::Io { .. } | Error::Exr { .. } => GDR_ERROR_IO,
             Error::Cancelled => GDR_ERROR_CANCELLED,
             Error::Model(_) => GDR_ERROR_INVALID_MODEL,
-            Error::Runtime(_) => GDR_ERROR_RUNTIME,
+            Error::Runtime(_) | Error::Denoiser(_) => GDR_ERROR_RUNTIME,
         };
         CapiError::new(code, e.to_string())
     }

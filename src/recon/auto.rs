@@ -1,6 +1,10 @@
 //! `auto`: picks a method per frame from what the frame carries, and says why.
 //!
-//! The rule, from the validation set (six scenes at 4, 16 and 64 spp; `docs/benchmarks.md`):
+//! The rule, from the validation set (`docs/benchmarks.md`):
+//! 0. **a prior → `l1` on the prior** (preset `prior`), when the frame has a `prior` layer or
+//!    Open Image Denoise can be loaded: on the validation split it is 0.80-0.88x OIDN alone
+//!    (geometric mean per spp) and 2-4x better than every method without a prior. Why OIDN
+//!    could not be loaded is part of the note when it falls through to the rules below.
 //! 1. **spp known → `frgr`** (RDFC guide). It has the lowest geometric-mean relMSE at 4 and
 //!    16 spp and is within 6 % of the best (the same method with an L1 guide) at 64 spp, and it
 //!    is the only method that is never far off on any scene (caustics included). A missing
@@ -14,7 +18,7 @@
 //! The chosen method is planned on the first frame that needs it and kept: a sequence of
 //! frames of one kind plans once.
 
-use super::param::{ParamInfo, Settings, Value};
+use super::param::{Param, ParamInfo, Params, Settings, Value};
 use super::{
     FrgrConfig, GradNetConfig, Method, MethodConfig, PoissonL1Config, Reconstructor, Register,
 };
@@ -26,7 +30,7 @@ use crate::progress::Progress;
 use crate::report::Report;
 
 /// Settings of [`Auto`]: the configurations it chooses between.
-#[derive(Clone, Debug, PartialEq, Default)]
+#[derive(Clone, Debug, PartialEq)]
 #[non_exhaustive]
 pub struct AutoConfig {
     /// Used when the frame has its spp.
@@ -35,6 +39,44 @@ pub struct AutoConfig {
     pub gradnet: GradNetConfig,
     /// The fallback.
     pub l1: PoissonL1Config,
+    /// Used whenever a prior is given or can be computed ([`PoissonL1Config::prior`]).
+    pub prior: PoissonL1Config,
+    /// Take the prior path when a prior is given or Open Image Denoise loads (rule 0).
+    pub use_prior: bool,
+}
+
+/// `auto`'s own switch, declared in a table like every parameter.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Rules {
+    use_prior: bool,
+}
+
+impl Default for Rules {
+    fn default() -> Self {
+        Rules { use_prior: true }
+    }
+}
+
+impl Params for Rules {
+    const TABLE: &'static [Param<Self>] = &[Param::bool(
+        "use_prior",
+        "Take the prior path (l1 on the prior) when the frame has a 'prior' layer or Open Image \
+         Denoise loads; false: never load OIDN, pick among frgr, gradnet and l1",
+        |c| c.use_prior,
+        |c, v| c.use_prior = v,
+    )];
+}
+
+impl Default for AutoConfig {
+    fn default() -> Self {
+        AutoConfig {
+            frgr: FrgrConfig::default(),
+            gradnet: GradNetConfig::default(),
+            l1: PoissonL1Config::default(),
+            prior: PoissonL1Config::prior(),
+            use_prior: Rules::default().use_prior,
+        }
+    }
 }
 
 impl AutoConfig {
@@ -72,17 +114,35 @@ impl AutoConfig {
 }
 
 /// `auto`'s parameters are those of the methods it chooses between, named `frgr.radius`,
-/// `gradnet.tile_size`, `l1.alpha`, ...
+/// `gradnet.tile_size`, `l1.alpha`, `prior.prior_alpha` (the prior path's L1), ...
 impl Settings for AutoConfig {
     fn infos(prefix: &str) -> Vec<ParamInfo> {
-        let mut all = FrgrConfig::infos(&format!("{prefix}frgr."));
+        let mut all = Rules::infos(prefix);
+        let mut prior = PoissonL1Config::infos(&format!("{prefix}prior."));
+        // The prior path's table lists the L1 defaults; its own are those of the preset.
+        let preset = PoissonL1Config::prior();
+        for info in &mut prior {
+            let own = info.name.rsplit('.').next().unwrap_or_default();
+            if let Some(v) = preset.read(own) {
+                info.default = v;
+            }
+        }
+        all.extend(prior);
+        all.extend(FrgrConfig::infos(&format!("{prefix}frgr.")));
         all.extend(GradNetConfig::infos(&format!("{prefix}gradnet.")));
         all.extend(PoissonL1Config::infos(&format!("{prefix}l1.")));
         all
     }
 
     fn read(&self, name: &str) -> Option<Value> {
+        if name == "use_prior" {
+            return Rules {
+                use_prior: self.use_prior,
+            }
+            .read(name);
+        }
         match name.split_once('.')? {
+            ("prior", rest) => self.prior.read(rest),
             ("frgr", rest) => self.frgr.read(rest),
             ("gradnet", rest) => self.gradnet.read(rest),
             ("l1", rest) => self.l1.read(rest),
@@ -91,7 +151,14 @@ impl Settings for AutoConfig {
     }
 
     fn write(&mut self, name: &str, value: Value) -> bool {
+        if name == "use_prior" {
+            let mut rules = Rules::default();
+            let written = rules.write(name, value);
+            self.use_prior = rules.use_prior;
+            return written;
+        }
         match name.split_once('.') {
+            Some(("prior", rest)) => self.prior.write(rest, value),
             Some(("frgr", rest)) => self.frgr.write(rest, value),
             Some(("gradnet", rest)) => self.gradnet.write(rest, value),
             Some(("l1", rest)) => self.l1.write(rest, value),
@@ -129,9 +196,11 @@ pub(crate) struct Auto {
     context: Context,
     width: usize,
     height: usize,
-    /// Plans made so far, by method; GradNet's failure to load is remembered too.
-    plans: Vec<(Method, Box<dyn Reconstructor>)>,
+    /// Plans made so far, by path (`prior`, `frgr`, `gradnet`, `l1`); why GradNet or OIDN
+    /// could not be loaded is remembered too.
+    plans: Vec<(&'static str, Box<dyn Reconstructor>)>,
     gradnet_error: Option<String>,
+    oidn_error: Option<String>,
 }
 
 impl Auto {
@@ -144,17 +213,49 @@ impl Auto {
             height,
             plans: Vec::new(),
             gradnet_error: None,
+            oidn_error: None,
         }
     }
 
-    fn plan(&mut self, config: &MethodConfig) -> Result<&mut Box<dyn Reconstructor>> {
-        let method = config.method();
-        if let Some(i) = self.plans.iter().position(|(m, _)| *m == method) {
+    fn plan(
+        &mut self,
+        path: &'static str,
+        config: &MethodConfig,
+    ) -> Result<&mut Box<dyn Reconstructor>> {
+        if let Some(i) = self.plans.iter().position(|(p, _)| *p == path) {
             return Ok(&mut self.plans[i].1);
         }
         let inner = config.instantiate(&self.context, self.width, self.height)?;
-        self.plans.push((method, inner));
+        self.plans.push((path, inner));
         Ok(&mut self.plans.last_mut().expect("just pushed").1)
+    }
+
+    /// Whether this frame gets the prior path: it has a prior, or OIDN can be loaded (tried
+    /// once; the failure is kept for the notes).
+    fn prior_available(&mut self, frame: &Frame) -> std::result::Result<String, String> {
+        if frame.prior().is_some() {
+            return Ok("the frame has a 'prior' layer".into());
+        }
+        if self.oidn_error.is_none() {
+            #[cfg(feature = "oidn")]
+            let loaded = self.context.denoiser().map(|d| {
+                format!(
+                    "Open Image Denoise computes the prior ({})",
+                    d.path().display()
+                )
+            });
+            #[cfg(not(feature = "oidn"))]
+            let loaded: Result<String> = Err(crate::Error::Unsupported(
+                "built without the 'oidn' feature".into(),
+            ));
+            match loaded {
+                Ok(found) => return Ok(found),
+                Err(e) => {
+                    self.oidn_error = Some(e.to_string().lines().next().unwrap_or_default().into())
+                }
+            }
+        }
+        Err(self.oidn_error.clone().unwrap_or_default())
     }
 }
 
@@ -170,10 +271,34 @@ impl Reconstructor for Auto {
         report: &mut Report,
         progress: &Progress,
     ) -> Result<()> {
+        let available = if self.config.use_prior {
+            self.prior_available(frame)
+        } else {
+            Err("use_prior is false".into())
+        };
+        let no_prior = match available {
+            Ok(why) => {
+                report.note(format!(
+                    "auto: {why}: l1 on the prior (0.80-0.88x Open Image Denoise alone on the \
+                     validation split)"
+                ));
+                report.method = "auto -> l1 (prior)".into();
+                let choice = MethodConfig::PoissonL1(self.config.prior);
+                return self
+                    .plan("prior", &choice)?
+                    .reconstruct_into(frame, out, report, progress);
+            }
+            Err(why) => why,
+        };
         let (mut choice, mut reason) = self.config.choose(frame);
+        let mut path = if choice.method() == Method::GradNet {
+            "gradnet"
+        } else {
+            "frgr"
+        };
         if choice.method() == Method::GradNet {
             if self.gradnet_error.is_none() {
-                if let Err(e) = self.plan(&choice) {
+                if let Err(e) = self.plan(path, &choice) {
                     self.gradnet_error = Some(e.to_string());
                 }
             }
@@ -181,11 +306,12 @@ impl Reconstructor for Auto {
                 let first_line = why.lines().next().unwrap_or_default();
                 reason = format!("spp unknown and GradNet cannot run ({first_line}): l1");
                 choice = MethodConfig::PoissonL1(self.config.l1);
+                path = "l1";
             }
         }
-        report.note(format!("auto: {reason}"));
+        report.note(format!("auto: no prior ({no_prior}); {reason}"));
         report.method = format!("auto -> {}", choice.method());
-        self.plan(&choice)?
+        self.plan(path, &choice)?
             .reconstruct_into(frame, out, report, progress)
     }
 }

@@ -27,6 +27,7 @@ mod ops;
 pub mod param;
 pub mod poisson_l1;
 pub mod poisson_l2;
+pub mod prior;
 
 use std::fmt;
 use std::str::FromStr;
@@ -41,6 +42,7 @@ pub use gradnet::GradNetConfig;
 pub use param::{Kind, ParamInfo, Range, Value};
 pub use poisson_l1::PoissonL1Config;
 pub use poisson_l2::PoissonL2Config;
+pub use prior::{DataTerm, PriorConfig, Quality};
 
 use self::param::Settings;
 use crate::context::Context;
@@ -221,6 +223,8 @@ registry! {
         "Filtering-based reconstruction, FRGR (Yan et al. 2024); needs the frame's spp";
     GradNet(GradNetConfig) = "gradnet",
         "GradNet (Guo et al. 2019) through ONNX Runtime, loaded at run time";
+    Prior(PriorConfig) = "prior",
+        "The prior alone: the frame's 'prior' layer, or Open Image Denoise on the base image";
     Auto(AutoConfig) = "auto",
         "Picks frgr, gradnet or l1 per frame from its spp and layers, and says why";
     #[cfg(feature = "testing")]

@@ -83,7 +83,8 @@ enum Command {
     },
 }
 
-/// Where GradNet's runtime and model come from (shared by `reconstruct` and `bench`).
+/// Where GradNet's runtime and model, and the prior's denoiser, come from (shared by
+/// `reconstruct` and `bench`).
 #[derive(Args, Clone, Debug)]
 pub(crate) struct RuntimeArgs {
     /// gradnet: ONNX Runtime library to load first (then ORT_DYLIB_PATH, a library next to
@@ -93,6 +94,11 @@ pub(crate) struct RuntimeArgs {
     /// gradnet: model file instead of the embedded models (checked against its .sha256).
     #[arg(long)]
     model: Option<PathBuf>,
+    /// The prior's Open Image Denoise library (libOpenImageDenoise.so.2), the only one tried
+    /// when given (else OIDN_DYLIB_PATH, a library next to gdrecon, the project's Python
+    /// environment).
+    #[arg(long)]
+    oidn: Option<PathBuf>,
 }
 
 impl RuntimeArgs {
@@ -103,13 +109,24 @@ impl RuntimeArgs {
             c.model = self.model.clone();
         }
     }
+
+    /// The context options for `threads` worker threads and this OIDN library.
+    pub(crate) fn context(&self, threads: Option<usize>) -> ContextOptions {
+        let options = ContextOptions::with_threads(threads);
+        match &self.oidn {
+            Some(path) => options.with_oidn(path),
+            None => options,
+        }
+    }
 }
 
 /// Method selection and settings of `reconstruct`.
 #[derive(Args, Clone, Debug)]
 pub(crate) struct MethodArgs {
-    /// Reconstruction method: l2, l1, frgr, gradnet or auto (`gdrecon params` lists each
-    /// one; frgr needs spp, from the file or --spp; gradnet needs ONNX Runtime).
+    /// Reconstruction method: l2, l1, frgr, gradnet, prior or auto (`gdrecon params` lists
+    /// each one; frgr needs spp, from the file or --spp; gradnet needs ONNX Runtime; prior,
+    /// and the prior paths such as `--preset prior` for l1, need Open Image Denoise or the
+    /// frame's 'prior' layer).
     #[arg(long, short, default_value = "l2")]
     method: String,
     /// Start from one of the method's presets (`gdrecon params METHOD` lists them), e.g.
@@ -212,7 +229,7 @@ fn reconstruct(args: ReconstructArgs) -> gdrecon::Result<()> {
     let frame = load_frame(&args.input, policy, args.spp)?;
     let read_time = t0.elapsed();
     let config = args.method.config()?;
-    let context = Context::new(ContextOptions::with_threads(args.threads))?;
+    let context = Context::new(args.method.runtime.context(args.threads))?;
     let mut plan = Plan::new(&context, &config, frame.width(), frame.height())?;
     let bar = bar::DelayedBar::new(args.quiet);
     let callback = |f: f64| bar.update(f);

@@ -19,6 +19,7 @@ use rayon::prelude::*;
 use super::converged::converged_mask;
 use super::param::{Param, Params, Preset};
 use super::poisson_l1::PoissonL1;
+use super::prior::{Prior, Quality};
 use super::{Method, PoissonL1Config, Reconstructor, Register};
 use crate::context::Context;
 use crate::error::{Error, Result};
@@ -42,13 +43,21 @@ pub enum FrgrGuide {
     PoissonL1,
     /// No pre-denoiser: the noisy colour itself (the ablation of the pre-denoiser).
     Colour,
+    /// The prior (`recon::prior`): the frame's `prior` layer, or Open Image Denoise on the
+    /// base image. A far better guide than RDFC, which it replaces.
+    Prior,
 }
 
 impl FrgrGuide {
     /// Every guide, in the order of their names and C indices (`GDR_FRGR_GUIDE_*`).
-    pub const ALL: [FrgrGuide; 3] = [FrgrGuide::Rdfc, FrgrGuide::PoissonL1, FrgrGuide::Colour];
+    pub const ALL: [FrgrGuide; 4] = [
+        FrgrGuide::Rdfc,
+        FrgrGuide::PoissonL1,
+        FrgrGuide::Colour,
+        FrgrGuide::Prior,
+    ];
     /// Their names, by index.
-    pub const NAMES: &'static [&'static str] = &["rdfc", "l1", "none"];
+    pub const NAMES: &'static [&'static str] = &["rdfc", "l1", "none", "prior"];
 
     /// The guide's index in [`FrgrGuide::ALL`].
     pub fn index(self) -> usize {
@@ -56,6 +65,7 @@ impl FrgrGuide {
             FrgrGuide::Rdfc => 0,
             FrgrGuide::PoissonL1 => 1,
             FrgrGuide::Colour => 2,
+            FrgrGuide::Prior => 3,
         }
     }
 }
@@ -134,8 +144,9 @@ impl Params for FrgrConfig {
         Param::choice(
             "guide",
             FrgrGuide::NAMES,
-            "The pre-denoised guide: RDFC (the release), our L1 reconstruction, or none (the \
-             noisy colour, an ablation)",
+            "The pre-denoised guide: RDFC (the release), our L1 reconstruction, none (the \
+             noisy colour, an ablation), or the prior (the frame's 'prior' layer, else Open \
+             Image Denoise on the base image)",
             |c| c.guide.index(),
             |c, v| c.guide = FrgrGuide::ALL[v],
         ),
@@ -164,15 +175,16 @@ impl Register for FrgrConfig {
         "enhance_iterations=0",
         "guide=none",
         "prefilter=false",
+        "guide=prior",
     ];
 
     fn plan(
         &self,
-        _context: &Context,
+        context: &Context,
         width: usize,
         height: usize,
     ) -> Result<Box<dyn Reconstructor>> {
-        Ok(Box::new(Frgr::new(*self, width, height)?))
+        Ok(Box::new(Frgr::new(context, *self, width, height)?))
     }
 }
 
@@ -197,24 +209,34 @@ pub(crate) struct Frgr {
     dy: Image,
     /// With the L1 guide: its planned solve and the image it writes.
     l1: Option<(PoissonL1, Image)>,
+    /// With the prior guide: where the prior comes from.
+    prior: Option<Prior>,
 }
 
 impl Frgr {
     /// Plans FRGR for `width` x `height` frames.
-    pub(crate) fn new(config: FrgrConfig, width: usize, height: usize) -> Result<Self> {
+    pub(crate) fn new(
+        context: &Context,
+        config: FrgrConfig,
+        width: usize,
+        height: usize,
+    ) -> Result<Self> {
         let l1 = match config.guide {
             FrgrGuide::PoissonL1 => Some((
                 PoissonL1::new(PoissonL1Config::default(), width, height)?,
                 Image::zeros(3, width, height),
             )),
-            FrgrGuide::Rdfc | FrgrGuide::Colour => None,
+            FrgrGuide::Rdfc | FrgrGuide::Colour | FrgrGuide::Prior => None,
         };
+        let prior = (config.guide == FrgrGuide::Prior)
+            .then(|| Prior::new(context, width, height, Quality::High));
         Ok(Frgr {
             levels: level_sizes(width, height, config.levels),
             cfg: config,
             dx: Image::zeros(3, width, height),
             dy: Image::zeros(3, width, height),
             l1,
+            prior,
         })
     }
 }
@@ -544,6 +566,11 @@ impl Reconstructor for Frgr {
             FrgrGuide::Colour => {
                 report.skip("pre-denoiser (guide: the noisy colour)");
                 Cow::Borrowed(colour)
+            }
+            FrgrGuide::Prior => {
+                report.skip("pre-denoiser (guide: the prior)");
+                let prior = self.prior.as_mut().expect("the prior guide is planned");
+                Cow::Owned(scaled(&*prior.get(frame, report)?, scale).into_owned())
             }
         };
         progress.update(0.4)?;

@@ -1,8 +1,8 @@
 //! Finding ONNX Runtime and holding the process's one `ort` environment.
 //!
 //! gdrecon links nothing of ONNX Runtime: the library is opened on the first GradNet plan, so a
-//! renderer that only uses the other methods never touches it. Candidates, in order (the error
-//! lists each with why it failed):
+//! renderer that only uses the other methods never touches it. Candidates, in order
+//! ([`crate::dylib`]'s search; the error lists each with why it failed):
 //! 1. an explicit path (the method's `runtime` setting, the CLI's `--onnxruntime`, the C
 //!    context's `"onnxruntime_path"`);
 //! 2. the `ORT_DYLIB_PATH` environment variable;
@@ -20,6 +20,7 @@ use std::sync::{Mutex, OnceLock};
 
 use ort::environment::Environment;
 
+use crate::dylib::{numbered, Candidate, Search};
 use crate::error::{Error, Result};
 
 /// The loaded runtime.
@@ -63,12 +64,7 @@ pub(crate) fn runtime(explicit: Option<&Path>) -> Result<&'static Runtime> {
          environment, onnxruntime 1.31.1), or `pip install onnxruntime==1.31.1` and point \
          ORT_DYLIB_PATH at its onnxruntime/capi/libonnxruntime.so.1.31.1. The other methods \
          (l2, l1, frgr) do not need it.",
-        tried
-            .iter()
-            .enumerate()
-            .map(|(i, t)| format!("  {}. {t}", i + 1))
-            .collect::<Vec<_>>()
-            .join("\n")
+        numbered(&tried)
     )))
 }
 
@@ -81,54 +77,17 @@ fn load(path: &Path) -> std::result::Result<Environment, String> {
         .map_err(|e| format!("the library loaded but its environment failed: {e}"))
 }
 
-/// Each discovery step with the file it found, or why it found none.
-pub(crate) fn candidates(
-    explicit: Option<&Path>,
-) -> Vec<(String, std::result::Result<PathBuf, String>)> {
-    let mut out = Vec::new();
-    out.push((
-        "explicit path (runtime setting, --onnxruntime, \"onnxruntime_path\")".to_owned(),
-        match explicit {
-            Some(p) if p.is_file() => Ok(p.to_owned()),
-            Some(p) => Err(format!("{} does not exist", p.display())),
-            None => Err("not given".to_owned()),
-        },
-    ));
-    out.push((
-        "ORT_DYLIB_PATH".to_owned(),
-        match std::env::var_os("ORT_DYLIB_PATH") {
-            Some(p) if Path::new(&p).is_file() => Ok(PathBuf::from(p)),
-            Some(p) => Err(format!("{} does not exist", Path::new(&p).display())),
-            None => Err("not set".to_owned()),
-        },
-    ));
-    let beside = own_directory();
-    out.push((
-        format!(
-            "next to the gdrecon library ({})",
-            beside
-                .as_deref()
-                .map_or("unknown location".into(), |d| d.display().to_string())
-        ),
-        beside
-            .as_deref()
-            .and_then(library_in)
-            .ok_or_else(|| format!("no {LIBRARY_PREFIX}* there")),
-    ));
-    let venv = std::env::var_os("GDRECON_VENV")
-        .map(PathBuf::from)
-        .or_else(|| std::env::var_os("HOME").map(|h| Path::new(&h).join(".cache/gdrecon/venv")));
-    out.push((
-        format!(
-            "the project's Python environment ({})",
-            venv.as_deref()
-                .map_or("HOME not set".into(), |d| d.display().to_string())
-        ),
-        venv.as_deref()
-            .and_then(python_runtime)
-            .ok_or_else(|| "no onnxruntime package there (run `bash onnx/setup.sh`)".to_owned()),
-    ));
-    out
+/// Where ONNX Runtime is searched ([`crate::dylib`]'s steps).
+pub(crate) fn candidates(explicit: Option<&Path>) -> Vec<Candidate> {
+    Search {
+        explicit_name: "runtime setting, --onnxruntime, \"onnxruntime_path\"",
+        explicit,
+        env: "ORT_DYLIB_PATH",
+        prefix: LIBRARY_PREFIX,
+        package_dir: "onnxruntime/capi",
+        package: "onnxruntime",
+    }
+    .candidates()
 }
 
 #[cfg(target_os = "macos")]
@@ -136,73 +95,9 @@ const LIBRARY_PREFIX: &str = "libonnxruntime.";
 #[cfg(not(target_os = "macos"))]
 const LIBRARY_PREFIX: &str = "libonnxruntime.so";
 
-/// Sorted paths of the entries of `dir` whose name starts with `prefix`.
-fn entries_with_prefix(dir: &Path, prefix: &str) -> Option<Vec<PathBuf>> {
-    let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
-        .ok()?
-        .filter_map(|e| e.ok())
-        .map(|e| e.path())
-        .filter(|p| {
-            p.file_name()
-                .and_then(|n| n.to_str())
-                .is_some_and(|n| n.starts_with(prefix))
-        })
-        .collect();
-    found.sort();
-    Some(found)
-}
-
-/// The ONNX Runtime library in `dir`: the unversioned name if present (it sorts first), else
-/// the last versioned one (`libonnxruntime.so.1.31.1`).
-fn library_in(dir: &Path) -> Option<PathBuf> {
-    let found = entries_with_prefix(dir, LIBRARY_PREFIX)?;
-    let unversioned = found
-        .iter()
-        .find(|p| p.file_name().and_then(|n| n.to_str()) == Some(LIBRARY_PREFIX));
-    unversioned.or(found.last()).cloned()
-}
-
-/// The runtime in a Python environment: `lib/python3*/site-packages/onnxruntime/capi/`.
-fn python_runtime(venv: &Path) -> Option<PathBuf> {
-    entries_with_prefix(&venv.join("lib"), "python3")?
-        .iter()
-        .rev()
-        .find_map(|p| library_in(&p.join("site-packages/onnxruntime/capi")))
-}
-
-/// The directory of the file this code was loaded from: the gdrecon shared library, or the
-/// executable it is statically linked into. Found in `/proc/self/maps` (no `dladdr`, so no
-/// `unsafe` outside the C API); elsewhere the executable's directory.
-fn own_directory() -> Option<PathBuf> {
-    let here = own_directory as fn() -> Option<PathBuf> as usize;
-    if let Ok(maps) = std::fs::read_to_string("/proc/self/maps") {
-        for line in maps.lines() {
-            let mut fields = line.split_whitespace();
-            let Some((lo, hi)) = fields.next().and_then(|r| r.split_once('-')) else {
-                continue;
-            };
-            let (Ok(lo), Ok(hi)) = (usize::from_str_radix(lo, 16), usize::from_str_radix(hi, 16))
-            else {
-                continue;
-            };
-            if (lo..hi).contains(&here) {
-                let path = fields.nth(4)?;
-                return Path::new(path).parent().map(Path::to_owned);
-            }
-        }
-    }
-    std::env::current_exe().ok()?.parent().map(Path::to_owned)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn own_directory_is_where_this_test_binary_lives() {
-        let exe = std::env::current_exe().unwrap();
-        assert_eq!(own_directory().as_deref(), exe.parent());
-    }
 
     #[test]
     fn candidates_report_every_step_in_order() {

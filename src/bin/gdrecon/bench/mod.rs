@@ -24,7 +24,7 @@ use std::path::{Path, PathBuf};
 
 use clap::Args;
 
-use gdrecon::{Context, ContextOptions};
+use gdrecon::Context;
 
 use self::frames::BenchFrame;
 use self::measure::{Row, Schedule};
@@ -111,7 +111,7 @@ pub fn run(args: BenchArgs) -> gdrecon::Result<()> {
         None => vec![1.0],
     };
     let frames = load_frames(&args)?;
-    let context = Context::new(ContextOptions::with_threads(args.threads))?;
+    let context = Context::new(args.runtime.context(args.threads))?;
     let schedule = Schedule {
         warmup: args.warmup,
         runs: args.runs,

@@ -1,0 +1,80 @@
+//! `prior`: the prior alone (the frame's `prior` layer, or Open Image Denoise on the base
+//! image), the yardstick every prior path must beat, registered so that it is timed and
+//! plotted by `gdrecon bench` beside them.
+
+use super::{Prior, Quality};
+use crate::context::Context;
+use crate::error::Result;
+use crate::frame::Frame;
+use crate::image::Image;
+use crate::progress::Progress;
+use crate::recon::param::{Param, Params, Preset};
+use crate::recon::{Method, Reconstructor, Register};
+use crate::report::Report;
+
+/// Settings of `prior`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
+pub struct PriorConfig {
+    /// OIDN's quality when the prior is computed.
+    pub quality: Quality,
+}
+
+impl Default for PriorConfig {
+    fn default() -> Self {
+        PriorConfig {
+            quality: Quality::High,
+        }
+    }
+}
+
+impl Params for PriorConfig {
+    const TABLE: &'static [Param<Self>] = &[Param::choice(
+        "quality",
+        Quality::NAMES,
+        "Open Image Denoise's quality when it computes the prior (ignored for a given prior)",
+        |c| c.quality.index(),
+        |c, v| c.quality = Quality::ALL[v],
+    )];
+
+    const PRESETS: &'static [Preset<Self>] = &[];
+}
+
+impl Register for PriorConfig {
+    const SWEEP: &'static [&'static str] = &["", "quality=balanced"];
+
+    fn plan(
+        &self,
+        context: &Context,
+        width: usize,
+        height: usize,
+    ) -> Result<Box<dyn Reconstructor>> {
+        Ok(Box::new(PriorOnly(Prior::new(
+            context,
+            width,
+            height,
+            self.quality,
+        ))))
+    }
+}
+
+/// `prior` planned.
+struct PriorOnly(Prior);
+
+impl Reconstructor for PriorOnly {
+    fn method(&self) -> Method {
+        Method::Prior
+    }
+
+    fn reconstruct_into(
+        &mut self,
+        frame: &Frame,
+        out: &mut Image,
+        report: &mut Report,
+        progress: &Progress,
+    ) -> Result<()> {
+        let prior = self.0.get(frame, report)?;
+        out.as_mut_slice().copy_from_slice(prior.as_slice());
+        progress.update(1.0)
+    }
+}

@@ -1,0 +1,292 @@
+//! The prior: a denoiser's output for the frame, which the prior paths of the filter and of
+//! screened Poisson build on (the gradients then add what the denoiser missed).
+//!
+//! A frame's `prior` layer, when the caller gives one, is used as is: a renderer that already
+//! ran its denoiser pays nothing more. Otherwise the plan computes it with Intel Open Image
+//! Denoise ([`oidn`], opened at run time) from the base image as rendered, with the albedo and
+//! normal when the frame has them: RT filter, HDR, quality high, auxiliary images not marked
+//! clean (OIDN prefilters them), the settings of `python -m gdrecon_py.oidn`, whose output
+//! `gdrecon bench --baselines` shows as "oidn". The denoiser must see the base image itself:
+//! OIDN assumes uncorrelated pixel noise, which a neighbourhood average of shifted estimates
+//! does not have.
+//!
+//! Nothing here loads OIDN until a frame without a prior reaches a plan that needs one.
+
+mod method;
+#[cfg(feature = "oidn")]
+pub(crate) mod oidn;
+
+pub use method::PriorConfig;
+
+use std::borrow::Cow;
+
+use crate::context::Context;
+use crate::error::Result;
+use crate::frame::{Frame, Layer};
+use crate::image::Image;
+use crate::progress::Progress;
+use crate::recon::{Method, Reconstructor};
+use crate::report::Report;
+use crate::validate::Policy;
+
+/// OIDN's quality setting (`quality`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum Quality {
+    /// Final-frame quality (`OIDN_QUALITY_HIGH`), the default.
+    High,
+    /// Interactive quality (`OIDN_QUALITY_BALANCED`).
+    Balanced,
+    /// Preview quality (`OIDN_QUALITY_FAST`).
+    Fast,
+}
+
+impl Quality {
+    /// Every quality, in the order of their names.
+    pub const ALL: [Quality; 3] = [Quality::High, Quality::Balanced, Quality::Fast];
+    /// Their names, by index.
+    pub const NAMES: &'static [&'static str] = &["high", "balanced", "fast"];
+
+    /// The quality's index in [`Quality::ALL`].
+    pub fn index(self) -> usize {
+        match self {
+            Quality::High => 0,
+            Quality::Balanced => 1,
+            Quality::Fast => 2,
+        }
+    }
+}
+
+/// The data term of screened Poisson (`data`): what the reconstruction is anchored to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum DataTerm {
+    /// The base image `I_b` (the published formulation), with weight `alpha`.
+    Colour,
+    /// The prior, with weight `prior_alpha`: the gradients add what the denoiser missed.
+    Prior,
+}
+
+impl DataTerm {
+    /// Every data term, in the order of their names.
+    pub const ALL: [DataTerm; 2] = [DataTerm::Colour, DataTerm::Prior];
+    /// Their names, by index.
+    pub const NAMES: &'static [&'static str] = &["color", "prior"];
+
+    /// The data term's index in [`DataTerm::ALL`].
+    pub fn index(self) -> usize {
+        match self {
+            DataTerm::Colour => 0,
+            DataTerm::Prior => 1,
+        }
+    }
+}
+
+/// A planned method run on the prior instead of the base image: each frame is handed to it
+/// with its `color` layer replaced by the prior (the gradients and features unchanged).
+pub(crate) struct OnPrior {
+    prior: Prior,
+    inner: Box<dyn Reconstructor>,
+}
+
+impl OnPrior {
+    /// `inner` (planned for `width` x `height`) fed the prior.
+    pub(crate) fn new(
+        context: &Context,
+        width: usize,
+        height: usize,
+        inner: Box<dyn Reconstructor>,
+    ) -> Self {
+        OnPrior {
+            prior: Prior::new(context, width, height, Quality::High),
+            inner,
+        }
+    }
+}
+
+impl Reconstructor for OnPrior {
+    fn method(&self) -> Method {
+        self.inner.method()
+    }
+
+    fn reconstruct_into(
+        &mut self,
+        frame: &Frame,
+        out: &mut Image,
+        report: &mut Report,
+        progress: &Progress,
+    ) -> Result<()> {
+        let prior = self.prior.get(frame, report)?.into_owned();
+        // The prior is finite and non-negative (given layers are sanitised like colour, OIDN's
+        // output is checked here), so rebuilding replaces nothing the frame did not already.
+        let anchored = frame
+            .clone()
+            .into_builder()
+            .image(Layer::Color, prior)
+            .without(Layer::Prior)
+            .build(Policy::Replace)?;
+        report.note("data term: the prior");
+        self.inner
+            .reconstruct_into(&anchored, out, report, progress)
+    }
+}
+
+/// A plan's source of priors for one frame size.
+pub(crate) struct Prior {
+    context: Context,
+    quality: Quality,
+    width: usize,
+    height: usize,
+    /// OIDN's filter and the planar image it writes, made on the first frame without a prior.
+    #[cfg(feature = "oidn")]
+    computed: Option<(oidn::Filter, Image)>,
+}
+
+impl Prior {
+    /// A prior source for `width` x `height` frames; loads nothing yet.
+    pub(crate) fn new(context: &Context, width: usize, height: usize, quality: Quality) -> Self {
+        Prior {
+            context: context.clone(),
+            quality,
+            width,
+            height,
+            #[cfg(feature = "oidn")]
+            computed: None,
+        }
+    }
+
+    /// The frame's prior: its `prior` layer when it has one, else OIDN's output on its base
+    /// image (timed as the stage "prior (oidn)"). The report says which.
+    pub(crate) fn get<'a>(
+        &'a mut self,
+        frame: &'a Frame,
+        report: &mut Report,
+    ) -> Result<Cow<'a, Image>> {
+        if let Some(given) = frame.prior() {
+            report.note("prior: the frame's 'prior' layer (given by the caller)");
+            return Ok(Cow::Borrowed(given));
+        }
+        self.compute(frame, report).map(Cow::Borrowed)
+    }
+
+    #[cfg(feature = "oidn")]
+    fn compute(&mut self, frame: &Frame, report: &mut Report) -> Result<&Image> {
+        if self.computed.is_none() {
+            let device = self.context.denoiser()?;
+            let quality = match self.quality {
+                Quality::High => oidn::QUALITY_HIGH,
+                Quality::Balanced => oidn::QUALITY_BALANCED,
+                Quality::Fast => oidn::QUALITY_FAST,
+            };
+            let filter = oidn::Filter::new(device, self.width, self.height, quality)?;
+            self.computed = Some((filter, Image::zeros(3, self.width, self.height)));
+        }
+        let (filter, image) = self.computed.as_mut().expect("made above");
+        let (albedo, normal) = (frame.albedo(), frame.normal());
+        let version = filter.version();
+        let path = filter.path().display().to_string();
+        report.time("prior (oidn)", || {
+            let (c, a, n) = filter.inputs();
+            interleave(frame.color(), c, 0.0, f32::MAX);
+            if let Some(albedo) = albedo {
+                interleave(albedo, a, 0.0, 1.0);
+            }
+            if let Some(normal) = normal {
+                interleave(normal, n, -1.0, 1.0);
+            }
+            let out = filter.execute(albedo.is_some(), normal.is_some())?;
+            deinterleave(out, image);
+            Ok::<_, crate::Error>(())
+        })?;
+        let repaired = confine(image, frame.color());
+        if repaired > 0 {
+            report.note(format!(
+                "prior: {repaired} values of OIDN's output were not finite: the base colour \
+                 stands in"
+            ));
+        }
+        report.note(format!(
+            "prior: Open Image Denoise {}.{}.{} ({path}), RT filter, hdr, quality {}, {}",
+            version / 10000,
+            version / 100 % 100,
+            version % 100,
+            Quality::NAMES[self.quality.index()],
+            match (albedo.is_some(), normal.is_some()) {
+                (true, true) => "albedo + normal",
+                (true, false) => "albedo",
+                (false, true) => "normal",
+                (false, false) => "no auxiliary images",
+            }
+        ));
+        Ok(image)
+    }
+
+    #[cfg(not(feature = "oidn"))]
+    fn compute(&mut self, _frame: &Frame, _report: &mut Report) -> Result<&Image> {
+        let _ = (&self.context, self.quality, self.width, self.height);
+        Err(crate::Error::Unsupported(
+            "this method needs a prior: give the frame a 'prior' layer, or build gdrecon with \
+             the 'oidn' feature (Intel Open Image Denoise, loaded at run time)"
+                .into(),
+        ))
+    }
+}
+
+/// Copies a planar 3-channel image into an interleaved buffer, clamped to `[lo, hi]` (OIDN
+/// expects non-negative colour, albedo in [0, 1] and normals in [-1, 1]).
+#[cfg(feature = "oidn")]
+fn interleave(image: &Image, out: &mut [f32], lo: f32, hi: f32) {
+    use rayon::prelude::*;
+    let (w, h) = image.size();
+    let plane = w * h;
+    let src = image.as_slice();
+    debug_assert_eq!(out.len(), 3 * plane);
+    out.par_chunks_mut(3 * w).enumerate().for_each(|(y, row)| {
+        for (x, px) in row.chunks_exact_mut(3).enumerate() {
+            for (c, v) in px.iter_mut().enumerate() {
+                *v = src[c * plane + y * w + x].clamp(lo, hi);
+            }
+        }
+    });
+}
+
+/// Keeps OIDN's output within what a denoiser of `colour` can mean: in `[0, max colour]`, with
+/// non-finite values replaced by the base colour (returns how many). The network can
+/// overshoot a little, and on a black frame it answers 3e-4, not 0; a prior above the
+/// brightest input would also void the bounds the screened solves keep (tests/stress.rs).
+#[cfg(feature = "oidn")]
+fn confine(image: &mut Image, colour: &Image) -> u64 {
+    use rayon::prelude::*;
+    let peak = colour
+        .as_slice()
+        .par_iter()
+        .copied()
+        .reduce(|| 0.0, f32::max);
+    image
+        .as_mut_slice()
+        .par_iter_mut()
+        .zip(colour.as_slice().par_iter())
+        .map(|(p, &c)| {
+            if p.is_finite() {
+                *p = p.clamp(0.0, peak);
+                0
+            } else {
+                *p = c;
+                1
+            }
+        })
+        .sum()
+}
+
+/// The inverse of [`interleave`] (no clamping; non-finite output is repaired by the plan).
+#[cfg(feature = "oidn")]
+fn deinterleave(src: &[f32], image: &mut Image) {
+    let (w, h) = image.size();
+    for (c, mut plane) in image.planes_mut().outer_iter_mut().enumerate() {
+        for y in 0..h {
+            for x in 0..w {
+                plane[[y, x]] = src[3 * (y * w + x) + c];
+            }
+        }
+    }
+}
