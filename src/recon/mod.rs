@@ -144,8 +144,9 @@ macro_rules! registry {
             }
 
             /// Whether this build can run the method: false for `gradnet` without its cargo
-            /// feature (its plans then fail with [`Error::Unsupported`]). Whether ONNX Runtime
-            /// can be found is only known when a plan is made.
+            /// feature (its plans then fail with [`Error::Unsupported`]), and for `prior`
+            /// without `oidn` (it then runs only on frames that carry a `prior` layer). Whether
+            /// ONNX Runtime or Open Image Denoise can be found is only known when it is needed.
             pub fn is_built(self) -> bool {
                 match self {
                     $( $(#[cfg($cfg)])? Method::$variant => <$config as Register>::BUILT, )*

@@ -83,7 +83,12 @@ impl Params for PoissonL2Config {
 }
 
 impl Register for PoissonL2Config {
-    const SWEEP: &'static [&'static str] = &["", "data=prior"];
+    // The prior variant needs OIDN (the bench frames carry no prior layer).
+    const SWEEP: &'static [&'static str] = if cfg!(feature = "oidn") {
+        &["", "data=prior"]
+    } else {
+        &[""]
+    };
 
     fn plan(
         &self,

@@ -167,16 +167,29 @@ impl Params for FrgrConfig {
 }
 
 impl Register for FrgrConfig {
-    const SWEEP: &'static [&'static str] = &[
-        "",
-        "reference",
-        "levels=1",
-        "guide=l1",
-        "enhance_iterations=0",
-        "guide=none",
-        "prefilter=false",
-        "guide=prior",
-    ];
+    // The prior variant needs OIDN (the bench frames carry no prior layer).
+    const SWEEP: &'static [&'static str] = if cfg!(feature = "oidn") {
+        &[
+            "",
+            "reference",
+            "levels=1",
+            "guide=l1",
+            "enhance_iterations=0",
+            "guide=none",
+            "prefilter=false",
+            "guide=prior",
+        ]
+    } else {
+        &[
+            "",
+            "reference",
+            "levels=1",
+            "guide=l1",
+            "enhance_iterations=0",
+            "guide=none",
+            "prefilter=false",
+        ]
+    };
 
     fn plan(
         &self,

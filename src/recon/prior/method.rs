@@ -43,6 +43,9 @@ impl Params for PriorConfig {
 impl Register for PriorConfig {
     const SWEEP: &'static [&'static str] = &["", "quality=balanced"];
 
+    /// Without the `oidn` feature the method runs only on frames that carry a `prior` layer.
+    const BUILT: bool = cfg!(feature = "oidn");
+
     fn plan(
         &self,
         context: &Context,
