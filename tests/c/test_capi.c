@@ -143,7 +143,7 @@ static void test_param_listing(gdr_context* ctx) {
         const char* method = gdr_method_name(m);
         gdr_filter* f = NULL;
         OK(gdr_method_param_count(method, &count));
-        CHECK(count >= 2);
+        CHECK(count >= 1);
         OK(gdr_filter_new(ctx, method, &f));
         for (k = 0; k < count; k++) {
             info.size = sizeof info;
@@ -154,7 +154,7 @@ static void test_param_listing(gdr_context* ctx) {
                 CHECK(info.choices[0] != '\0');
                 if (strcmp(info.name, "guide") == 0) {
                     saw_guide = 1;
-                    CHECK(strcmp(info.choices, "rdfc,l1,none") == 0);
+                    CHECK(strcmp(info.choices, "rdfc,l1,none,prior") == 0);
                 }
             }
             switch (info.kind) {
@@ -214,6 +214,29 @@ static void test_bit_for_bit(gdr_context* ctx, const char* dir) {
         free(out);
         free(ref);
     }
+}
+
+/* A caller's prior (image "prior") is used as given, and presets are set by name. Nothing here
+ * loads Open Image Denoise (the prior is given), so it runs under valgrind too. */
+static void test_prior(gdr_context* ctx) {
+    float* out = (float*)calloc(W * H * 3, sizeof(float));
+    gdr_filter* f = NULL;
+    const char* msg;
+    OK(gdr_filter_new(ctx, "l1", &f));
+    msg = EXPECT(gdr_filter_set_preset(f, "nope"), GDR_ERROR_INVALID_ARGUMENT);
+    CONTAINS(msg, "fast, published, prior");
+    OK(gdr_filter_set_preset(f, "prior"));
+    OK(gdr_filter_release(&f));
+    OK(gdr_filter_new(ctx, "prior", &f));
+    set_packed_inputs(f, 3);
+    /* Any RGB image will do as the prior: here the base colour itself. */
+    OK(gdr_filter_set_image(f, "prior", layers[0], W, H, 3, 0, 0));
+    OK(gdr_filter_set_image(f, "output", out, W, H, 3, 0, 0));
+    OK(gdr_filter_commit(f));
+    OK(gdr_filter_execute(f));
+    CHECK(same_bits(out, layers[0], W * H * 3));
+    OK(gdr_filter_release(&f));
+    free(out);
 }
 
 /* RGBA with padded rows, planar, in place, and all passes in one buffer: same bits. */
@@ -680,6 +703,7 @@ int main(int argc, char** argv) {
     test_layouts(ctx, argv[1]);
     test_errors(ctx);
     test_param_listing(ctx);
+    test_prior(ctx);
     test_cancellation(ctx);
     OK(gdr_context_release(&ctx));
     if (argc > 2) test_frame_and_log(argv[2]);
