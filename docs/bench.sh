@@ -60,14 +60,14 @@ for split in val test; do
   declare -n set="$split"
   "$bin" bench "${set[@]}" \
     --settings l2,l1,l1:fast,frgr,gradnet,gradnet:range_limit=0,prior,l1:prior,l2:data=prior,frgr:guide=prior,auto \
-    --baselines --runs 3 \
+    --baselines --against-oidn --runs 3 \
     --warmup 1 "${threads[@]}" --out-dir "$out/$split" \
     --title "gdrecon bench: $split split (320 x 180, 8 families, 4 / 16 / 64 spp, 4096 spp references)"
 done
 cp "$out/val/summary.md" "$out/summary.md"
 
 echo "== 2/4 1280 x 720: every method and the prior paths, runs 5 (about 9 minutes, frgr most of it)"
-"$bin" bench "${hd[@]}" --settings l2,l1,frgr,gradnet,prior,l1:prior --runs 5 --warmup 1 \
+"$bin" bench "${hd[@]}" --settings l2,l1,frgr,gradnet,l1:prior --against-oidn --runs 5 --warmup 1 \
   "${threads[@]}" --out-dir "$out/720p" \
   --title "1280 x 720, 16 spp, 256 spp references"
 

@@ -189,3 +189,63 @@ fn baselines_are_read_beside_the_bundles() {
         "{oidn_line}"
     );
 }
+
+/// `--against-oidn` times OIDN (the `prior` variant) first, in the same run, and every
+/// variant's time becomes a multiple of it, in the summary and on the console.
+#[cfg(feature = "oidn")]
+#[test]
+fn against_oidn_reports_every_time_as_a_multiple_of_oidn() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("report");
+    let output = gdrecon()
+        .args([
+            "bench",
+            "--synthetic",
+            "64x48",
+            "--methods",
+            "l2,l1",
+            "--against-oidn",
+            "--runs",
+            "1",
+            "--warmup",
+            "0",
+            "--out-dir",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let console = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let csv = std::fs::read_to_string(out.join("results.csv")).unwrap();
+    let methods: Vec<&str> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').nth(2).unwrap())
+        .collect();
+    assert_eq!(methods, ["prior", "l2", "l1"], "OIDN is timed first");
+    assert!(
+        console.contains("time against OIDN in this run"),
+        "{console}"
+    );
+    let ratio = |v: &str| -> f64 {
+        let line = console
+            .lines()
+            .find(|l| l.starts_with(v) && l.ends_with("x OIDN"))
+            .unwrap_or_else(|| panic!("no ratio for {v}:\n{console}"));
+        line.split_whitespace()
+            .nth(1)
+            .unwrap()
+            .trim_end_matches('x')
+            .parse()
+            .unwrap()
+    };
+    assert_eq!(ratio("prior"), 1.0);
+    assert!(ratio("l2") > 0.0 && ratio("l2") < ratio("l1"));
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(summary.contains("| x OIDN (this run) |"), "{summary}");
+    assert!(summary.contains("| `prior` |"), "{summary}");
+}

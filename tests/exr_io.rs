@@ -295,3 +295,17 @@ fn absurd_declared_size_is_refused_before_allocating() {
         "{err}"
     );
 }
+
+#[test]
+fn htj2k_is_refused_before_its_decoder_allocates() {
+    // A 1 KB file found by fuzzing: HTJ2K-compressed, declaring 46 MB of samples; exr 1.74's
+    // decoder took 2 GB on it before failing.
+    let bytes = include_bytes!("fixtures/exr/htj2k_1kb_declares_46mb.exr");
+    let err = io::exr::read_bundle_from_bytes(bytes)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("not supported") && err.contains("j2k") && err.contains("ZIP"),
+        "{err}"
+    );
+}

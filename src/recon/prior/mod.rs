@@ -8,7 +8,8 @@
 //! clean (OIDN prefilters them), the settings of `python -m gdrecon_py.oidn`, whose output
 //! `gdrecon bench --baselines` shows as "oidn". The denoiser must see the base image itself:
 //! OIDN assumes uncorrelated pixel noise, which a neighbourhood average of shifted estimates
-//! does not have.
+//! does not have. Its output is confined to [0, max colour] (`confine`): bit-identical to
+//! `pyoidn`'s otherwise.
 //!
 //! Nothing here loads OIDN until a frame without a prior reaches a plan that needs one.
 

@@ -19,6 +19,9 @@ pub struct Point {
     pub worst: (f64, String),
     /// Not a variant of ours (`bench --baselines`): never marked Pareto, never plotted.
     pub baseline: bool,
+    /// Median over the frames of this variant's time over OIDN's on the same frame (variant
+    /// [`OIDN`] in the same run), when it was timed.
+    pub times_oidn: Option<f64>,
     /// No other variant is at least as good in both and better in one.
     pub pareto: bool,
 }
@@ -30,6 +33,26 @@ pub struct Panel {
     pub spp: f32,
     /// The variants.
     pub points: Vec<Point>,
+}
+
+/// The variant that is Open Image Denoise alone (`bench --against-oidn` times it first).
+pub const OIDN: &str = "prior";
+
+/// The median over `of`'s frames (and scales) of its seconds over OIDN's on the same frame
+/// and scale in `all`; `None` when OIDN was not timed on any of them, or `of` is a baseline.
+pub fn times_oidn(of: &[&Row], all: &[Row]) -> Option<f64> {
+    let mut ratios: Vec<f64> = of
+        .iter()
+        .filter(|r| r.method != super::baseline::METHOD)
+        .filter_map(|r| {
+            let oidn = all
+                .iter()
+                .find(|o| o.variant == OIDN && o.frame == r.frame && o.scale == r.scale)?;
+            (oidn.median_s > 0.0).then(|| r.median_s / oidn.median_s)
+        })
+        .collect();
+    ratios.sort_by(f64::total_cmp);
+    (!ratios.is_empty()).then(|| middle(&ratios))
 }
 
 /// Groups the original-size rows with a relMSE and a known spp by spp (ascending).
@@ -50,14 +73,15 @@ pub fn panels(rows: &[Row]) -> Vec<Panel> {
                 .collect();
             Panel {
                 spp,
-                points: points(&at_spp),
+                points: points(&at_spp, rows),
             }
         })
         .collect()
 }
 
-/// One point per variant (in first-seen order), marked and sorted by relMSE.
-fn points(rows: &[&Row]) -> Vec<Point> {
+/// One point per variant (in first-seen order), marked and sorted by relMSE; `all` holds the
+/// OIDN rows their times are compared with.
+fn points(rows: &[&Row], all: &[Row]) -> Vec<Point> {
     let mut variants: Vec<&str> = Vec::new();
     for r in rows {
         if !variants.contains(&r.variant.as_str()) {
@@ -84,6 +108,7 @@ fn points(rows: &[&Row]) -> Vec<Point> {
                 frames: of.len(),
                 worst,
                 baseline: of[0].method == super::baseline::METHOD,
+                times_oidn: times_oidn(&of, all),
                 pareto: false,
             }
         })
@@ -145,6 +170,7 @@ mod tests {
             frames: 1,
             worst: (rel_mse, name.into()),
             baseline: false,
+            times_oidn: None,
             pareto: false,
         }
     }

@@ -80,6 +80,12 @@ pub struct BenchArgs {
     /// `python -m gdrecon_py.oidn <folder>`); their seconds are OIDN's own, not timed here.
     #[arg(long)]
     baselines: bool,
+    /// Also time Intel Open Image Denoise on every frame in this run (the variant `prior`,
+    /// timed first; the library's own OIDN, or the frame's prior layer) and report every
+    /// variant's time as a multiple of it ("x OIDN": per frame, then the median), so that
+    /// speed is quoted against the denoiser on the same machine and load.
+    #[arg(long)]
+    against_oidn: bool,
     /// Heading of summary.md.
     #[arg(long, default_value = "gdrecon bench")]
     title: String,
@@ -119,6 +125,9 @@ pub fn run(args: BenchArgs) -> gdrecon::Result<()> {
     let load_before = summary::load_average();
     print_header();
     let mut rows = time_all(&context, &variants, &frames, &scales, schedule)?;
+    if args.against_oidn {
+        print_against_oidn(&rows);
+    }
     if args.baselines {
         for row in baseline::rows(&frames, context.threads())? {
             print_row(&row);
@@ -154,10 +163,18 @@ fn variants(args: &BenchArgs) -> gdrecon::Result<Vec<Variant>> {
             "no method to time: --methods / --settings is empty".into(),
         ));
     }
-    let variants = names
+    let mut variants = names
         .iter()
         .map(|n| variant::parse(n, &args.params, &args.runtime))
         .collect::<gdrecon::Result<Vec<_>>>()?;
+    if args.against_oidn {
+        // OIDN first: the reference every later variant's time is divided by.
+        variants.retain(|v| v.label() != aggregate::OIDN);
+        variants.insert(
+            0,
+            variant::parse(aggregate::OIDN, &args.params, &args.runtime)?,
+        );
+    }
     variant::check_common(&args.params, &variants)?;
     Ok(variants)
 }
@@ -212,6 +229,24 @@ fn time_all(
         }
     }
     Ok(rows)
+}
+
+/// Every variant's time as a multiple of OIDN's (`--against-oidn`): per frame and scale, then
+/// the median over them.
+fn print_against_oidn(rows: &[Row]) {
+    say!("\ntime against OIDN in this run (per frame, then the median; 1 = OIDN alone)");
+    let mut seen: Vec<&str> = Vec::new();
+    for r in rows {
+        if !seen.contains(&r.variant.as_str()) {
+            seen.push(&r.variant);
+        }
+    }
+    for v in seen {
+        let of: Vec<&Row> = rows.iter().filter(|r| r.variant == v).collect();
+        if let Some(x) = aggregate::times_oidn(&of, rows) {
+            say!("{v:<40} {x:>8.3}x OIDN");
+        }
+    }
 }
 
 /// The console table's header.

@@ -65,10 +65,17 @@ fn panel_table(out: &mut String, panel: &Panel) {
         "## {} spp: geometric mean over {frames} frame(s)\n",
         panel.spp
     );
+    let against_oidn = panel.points.iter().any(|p| p.times_oidn.is_some());
     let _ = writeln!(
         out,
-        "| variant | relMSE (geo. mean) | worst frame | median s | Pareto |\n\
-         | --- | --- | --- | --- | --- |"
+        "| variant | relMSE (geo. mean) | worst frame | median s |{} Pareto |\n\
+         | --- | --- | --- | --- |{} --- |",
+        if against_oidn {
+            " x OIDN (this run) |"
+        } else {
+            ""
+        },
+        if against_oidn { " --- |" } else { "" }
     );
     for p in &panel.points {
         let mark = if p.pareto { "**yes**" } else { "" };
@@ -78,9 +85,14 @@ fn panel_table(out: &mut String, panel: &Panel) {
         } else {
             format!("`{}`", p.variant)
         };
+        let ratio = match (against_oidn, p.times_oidn) {
+            (false, _) => String::new(),
+            (true, Some(x)) => format!(" {x:.3} |"),
+            (true, None) => " - |".to_owned(),
+        };
         let _ = writeln!(
             out,
-            "| {name} | {:.4e} | {:.4e} ({}) | {} | {mark} |",
+            "| {name} | {:.4e} | {:.4e} ({}) | {} |{ratio} {mark} |",
             p.rel_mse,
             p.worst.0,
             p.worst.1,
