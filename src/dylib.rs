@@ -90,6 +90,25 @@ impl Search<'_> {
     }
 }
 
+/// Opens the first candidate that `open` accepts, in order, and returns it with its path; or,
+/// when none does, every step with why it failed (for the caller's error message).
+pub(crate) fn first_that_opens<T>(
+    candidates: Vec<Candidate>,
+    mut open: impl FnMut(&Path) -> std::result::Result<T, String>,
+) -> std::result::Result<(T, PathBuf), Vec<String>> {
+    let mut tried = Vec::new();
+    for (source, found) in candidates {
+        match found {
+            Err(why) => tried.push(format!("{source}: {why}")),
+            Ok(path) => match open(&path) {
+                Ok(opened) => return Ok((opened, path)),
+                Err(why) => tried.push(format!("{source}: {}: {why}", path.display())),
+            },
+        }
+    }
+    Err(tried)
+}
+
 /// The numbered list of steps an error message shows.
 pub(crate) fn numbered(tried: &[String]) -> String {
     tried

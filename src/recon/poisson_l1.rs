@@ -33,7 +33,7 @@ use super::dct::DctPoisson;
 use super::ops::{apply_weighted_dot, plane_sums, Dims, RowWeights};
 use super::param::{Param, Params, Preset, Range};
 use super::poisson_l2::{ALPHA_RANGE, DEFAULT_ALPHA};
-use super::prior::{DataTerm, OnPrior};
+use super::prior::{DataTerm, OnPrior, DATA_DOC, PRIOR_ALPHA_DOC};
 use super::{Method, Reconstructor, Register};
 use crate::context::Context;
 use crate::error::Result;
@@ -196,8 +196,7 @@ impl Params for PoissonL1Config {
         Param::choice(
             "data",
             DataTerm::NAMES,
-            "What the data term anchors to: the base image (color), or the prior (the frame's \
-             'prior' layer, else Open Image Denoise on the base image) with weight prior_alpha",
+            DATA_DOC,
             |c| c.data.index(),
             |c, v| c.data = DataTerm::ALL[v],
         ),
@@ -207,8 +206,7 @@ impl Params for PoissonL1Config {
                 min_open: true,
                 ..ALPHA_RANGE
             },
-            "Weight of the data term when it is the prior: residual rows are \
-             prior_alpha (I - prior)",
+            PRIOR_ALPHA_DOC,
             |c| c.prior_alpha,
             |c, v| c.prior_alpha = v,
         ),

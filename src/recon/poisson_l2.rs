@@ -9,7 +9,7 @@
 use super::dct::DctPoisson;
 use super::ops::{grad_adjoint, Dims};
 use super::param::{Param, Params, Range};
-use super::prior::{DataTerm, OnPrior};
+use super::prior::{DataTerm, OnPrior, DATA_DOC, PRIOR_ALPHA_DOC};
 use super::{Method, Reconstructor, Register};
 use crate::context::Context;
 use crate::error::Result;
@@ -66,16 +66,14 @@ impl Params for PoissonL2Config {
         Param::choice(
             "data",
             DataTerm::NAMES,
-            "What the data term anchors to: the base image (color), or the prior (the frame's \
-             'prior' layer, else Open Image Denoise on the base image) with weight prior_alpha",
+            DATA_DOC,
             |c| c.data.index(),
             |c, v| c.data = DataTerm::ALL[v],
         ),
         Param::float(
             "prior_alpha",
             ALPHA_RANGE,
-            "Weight of the data term when it is the prior: residual rows are \
-             prior_alpha (I - prior)",
+            PRIOR_ALPHA_DOC,
             |c| c.prior_alpha,
             |c, v| c.prior_alpha = v,
         ),

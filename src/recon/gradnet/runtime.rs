@@ -20,7 +20,7 @@ use std::sync::{Mutex, OnceLock};
 
 use ort::environment::Environment;
 
-use crate::dylib::{numbered, Candidate, Search};
+use crate::dylib::{first_that_opens, numbered, Candidate, Search};
 use crate::error::{Error, Result};
 
 /// The loaded runtime.
@@ -42,22 +42,10 @@ pub(crate) fn runtime(explicit: Option<&Path>) -> Result<&'static Runtime> {
     if let Some(rt) = RUNTIME.get() {
         return Ok(rt);
     }
-    let mut tried = Vec::new();
-    for (source, found) in candidates(explicit) {
-        let path = match found {
-            Ok(path) => path,
-            Err(why) => {
-                tried.push(format!("{source}: {why}"));
-                continue;
-            }
-        };
-        match load(&path) {
-            Ok(env) => {
-                return Ok(RUNTIME.get_or_init(|| Runtime { env, path }));
-            }
-            Err(why) => tried.push(format!("{source}: {}: {why}", path.display())),
-        }
-    }
+    let tried = match first_that_opens(candidates(explicit), load) {
+        Ok((env, path)) => return Ok(RUNTIME.get_or_init(|| Runtime { env, path })),
+        Err(tried) => tried,
+    };
     Err(Error::Unsupported(format!(
         "GradNet needs ONNX Runtime 1.31 (libonnxruntime.so.1.31.x) and none could be loaded. \
          Tried, in order:\n{}\nInstall it with `bash onnx/setup.sh` (the project's Python \

@@ -83,6 +83,15 @@ impl DataTerm {
     }
 }
 
+/// The `data` parameter's meaning, shared by the screened Poisson methods' tables.
+pub(crate) const DATA_DOC: &str = "What the data term anchors to: the base image (color), or \
+     the prior (the frame's 'prior' layer, else Open Image Denoise on the base image) with \
+     weight prior_alpha";
+
+/// The `prior_alpha` parameter's meaning, shared likewise.
+pub(crate) const PRIOR_ALPHA_DOC: &str =
+    "Weight of the data term when it is the prior: residual rows are prior_alpha (I - prior)";
+
 /// A planned method run on the prior instead of the base image: each frame is handed to it
 /// with its `color` layer replaced by the prior (the gradients and features unchanged).
 pub(crate) struct OnPrior {

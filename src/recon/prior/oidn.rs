@@ -23,7 +23,7 @@ use std::sync::{Mutex, OnceLock};
 
 use libloading::Library;
 
-use crate::dylib::{numbered, Search};
+use crate::dylib::{first_that_opens, numbered, Search};
 use crate::error::{Error, Result};
 
 /// `OIDN_DEVICE_TYPE_CPU`.
@@ -112,20 +112,10 @@ pub(crate) fn library(explicit: Option<&Path>) -> Result<&'static Oidn> {
     if explicit.is_some() {
         candidates.truncate(1);
     }
-    let mut tried = Vec::new();
-    for (source, found) in candidates {
-        let path = match found {
-            Ok(path) => path,
-            Err(why) => {
-                tried.push(format!("{source}: {why}"));
-                continue;
-            }
-        };
-        match open(&path) {
-            Ok(lib) => return Ok(LOADED.get_or_init(|| lib)),
-            Err(why) => tried.push(format!("{source}: {}: {why}", path.display())),
-        }
-    }
+    let tried = match first_that_opens(candidates, open) {
+        Ok((lib, _)) => return Ok(LOADED.get_or_init(|| lib)),
+        Err(tried) => tried,
+    };
     Err(Error::Unsupported(format!(
         "this method needs Intel Open Image Denoise 2 (libOpenImageDenoise.so.2) for its prior, \
          and none could be loaded. Tried, in order:\n{}\nInstall it with `bash onnx/setup.sh` \
