@@ -76,6 +76,10 @@ pub(crate) trait Register: Settings + Clone {
     /// defaults (`"reweight_steps=5"`, `"published"`).
     const SWEEP: &'static [&'static str] = &[""];
 
+    /// Further variants that need a prior, which bench frames do not carry: swept after
+    /// [`Register::SWEEP`] when OIDN can compute it (cargo feature `oidn`).
+    const PRIOR_SWEEP: &'static [&'static str] = &[];
+
     /// Whether this build can run the method (its cargo feature is on).
     const BUILT: bool = true;
 
@@ -154,11 +158,16 @@ macro_rules! registry {
             }
 
             /// The variants `gdrecon bench --sweep` times: options after `method:` (`""`:
-            /// the defaults).
-            pub fn sweep(self) -> &'static [&'static str] {
-                match self {
-                    $( $(#[cfg($cfg)])? Method::$variant => <$config as Register>::SWEEP, )*
-                }
+            /// the defaults); those that need a prior only when OIDN is built in.
+            pub fn sweep(self) -> Vec<&'static str> {
+                let (all, prior) = match self {
+                    $( $(#[cfg($cfg)])? Method::$variant => (
+                        <$config as Register>::SWEEP,
+                        <$config as Register>::PRIOR_SWEEP,
+                    ), )*
+                };
+                let prior: &[&str] = if cfg!(feature = "oidn") { prior } else { &[] };
+                all.iter().chain(prior).copied().collect()
             }
         }
 

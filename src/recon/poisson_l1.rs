@@ -235,12 +235,8 @@ impl Params for PoissonL1Config {
 }
 
 impl Register for PoissonL1Config {
-    // The prior variant needs OIDN (the bench frames carry no prior layer).
-    const SWEEP: &'static [&'static str] = if cfg!(feature = "oidn") {
-        &["", "fast", "reweight_steps=5", "published", "prior"]
-    } else {
-        &["", "fast", "reweight_steps=5", "published"]
-    };
+    const SWEEP: &'static [&'static str] = &["", "fast", "reweight_steps=5", "published"];
+    const PRIOR_SWEEP: &'static [&'static str] = &["prior"];
 
     fn plan(
         &self,

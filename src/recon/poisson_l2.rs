@@ -81,12 +81,7 @@ impl Params for PoissonL2Config {
 }
 
 impl Register for PoissonL2Config {
-    // The prior variant needs OIDN (the bench frames carry no prior layer).
-    const SWEEP: &'static [&'static str] = if cfg!(feature = "oidn") {
-        &["", "data=prior"]
-    } else {
-        &[""]
-    };
+    const PRIOR_SWEEP: &'static [&'static str] = &["data=prior"];
 
     fn plan(
         &self,

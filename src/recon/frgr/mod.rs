@@ -167,29 +167,16 @@ impl Params for FrgrConfig {
 }
 
 impl Register for FrgrConfig {
-    // The prior variant needs OIDN (the bench frames carry no prior layer).
-    const SWEEP: &'static [&'static str] = if cfg!(feature = "oidn") {
-        &[
-            "",
-            "reference",
-            "levels=1",
-            "guide=l1",
-            "enhance_iterations=0",
-            "guide=none",
-            "prefilter=false",
-            "guide=prior",
-        ]
-    } else {
-        &[
-            "",
-            "reference",
-            "levels=1",
-            "guide=l1",
-            "enhance_iterations=0",
-            "guide=none",
-            "prefilter=false",
-        ]
-    };
+    const SWEEP: &'static [&'static str] = &[
+        "",
+        "reference",
+        "levels=1",
+        "guide=l1",
+        "enhance_iterations=0",
+        "guide=none",
+        "prefilter=false",
+    ];
+    const PRIOR_SWEEP: &'static [&'static str] = &["guide=prior"];
 
     fn plan(
         &self,

@@ -23,7 +23,7 @@ use std::borrow::Cow;
 
 use crate::context::Context;
 use crate::error::Result;
-use crate::frame::{Frame, Layer};
+use crate::frame::{Frame, FrameBuilder, Layer};
 use crate::image::Image;
 use crate::progress::Progress;
 use crate::recon::{Method, Reconstructor};
@@ -92,8 +92,8 @@ pub(crate) const DATA_DOC: &str = "What the data term anchors to: the base image
 pub(crate) const PRIOR_ALPHA_DOC: &str =
     "Weight of the data term when it is the prior: residual rows are prior_alpha (I - prior)";
 
-/// A planned method run on the prior instead of the base image: each frame is handed to it
-/// with its `color` layer replaced by the prior (the gradients and features unchanged).
+/// A planned screened Poisson solve run on the prior instead of the base image: each frame is
+/// handed to it as the prior (its `color`) and the frame's gradients.
 pub(crate) struct OnPrior {
     prior: Prior,
     inner: Box<dyn Reconstructor>,
@@ -127,13 +127,15 @@ impl Reconstructor for OnPrior {
         progress: &Progress,
     ) -> Result<()> {
         let prior = self.prior.get(frame, report)?.into_owned();
-        // The prior is finite and non-negative (given layers are sanitised like colour, OIDN's
-        // output is checked here), so rebuilding replaces nothing the frame did not already.
-        let anchored = frame
-            .clone()
-            .into_builder()
+        // Only what screened Poisson reads: the prior as its colour and the gradients (copying
+        // the other layers cost 60 MB and a sanitising pass at 720p). All are already clean
+        // (a given prior is sanitised like colour, OIDN's output is confined), so building
+        // replaces nothing.
+        let anchored = FrameBuilder::new()
             .image(Layer::Color, prior)
-            .without(Layer::Prior)
+            .image(Layer::Dx, frame.dx().clone())
+            .image(Layer::Dy, frame.dy().clone())
+            .spp(frame.spp())
             .build(Policy::Replace)?;
         report.note("data term: the prior");
         self.inner
