@@ -18,7 +18,7 @@ use ndarray::ArrayView3;
 
 use crate::error::{Error, Result};
 use crate::image::Image;
-use crate::validate::{sanitize_layer, Policy, SanitizeReport};
+use crate::validate::{gradient_bound, sanitize_layer, Policy, SanitizeReport};
 
 /// A layer of a frame bundle, named as in the EXR bundle (`layer.component`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -325,9 +325,16 @@ impl FrameBuilder {
             }
         }
         let mut sanitized = SanitizeReport::default();
+        let mut gradients = None;
+        // Colour comes first in Layer::ALL: the gradients' bound is taken on the sanitised colour.
         for layer in Layer::ALL {
+            let bound = matches!(layer, Layer::Dx | Layer::Dy).then(|| {
+                *gradients.get_or_insert_with(|| {
+                    gradient_bound(layers[Layer::Color.index()].as_ref().expect("checked"))
+                })
+            });
             if let Some(img) = layers[layer.index()].as_mut() {
-                let counts = sanitize_layer(layer, img, policy)?;
+                let counts = sanitize_layer(layer, img, policy, bound)?;
                 sanitized.record(layer, counts);
             }
         }

@@ -46,16 +46,20 @@ pub fn compare(image: &Image, reference: &Image) -> Result<Metrics> {
             reference.channels()
         )));
     }
-    let non_finite = image
-        .as_slice()
-        .par_iter()
-        .filter(|v| !v.is_finite())
-        .count();
-    if non_finite > 0 {
-        return Err(Error::input(format!(
-            "image holds {non_finite} non-finite values: a failed reconstruction, not an error \
-             to average"
-        )));
+    let non_finite = |img: &Image| img.as_slice().par_iter().filter(|v| !v.is_finite()).count();
+    match (non_finite(image), non_finite(reference)) {
+        (0, 0) => {}
+        (0, n) => {
+            return Err(Error::input(format!(
+                "reference holds {n} non-finite values: no error can be measured against it"
+            )))
+        }
+        (n, _) => {
+            return Err(Error::input(format!(
+                "image holds {n} non-finite values: a failed reconstruction, not an error to \
+                 average"
+            )))
+        }
     }
     let chunk = image.width().max(1024);
     // Per-chunk partial sums collected in order and added serially: the same result for

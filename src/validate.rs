@@ -5,6 +5,10 @@
 //! - non-finite values (NaN, +Inf, -Inf) in any layer become 0;
 //! - negative values in colour, variance and reference become 0 (gradients and normals are
 //!   signed by nature and are left alone);
+//! - implausible gradients become 0: a gradient is a difference of neighbouring colour values,
+//!   so one larger than [`GRADIENT_LIMIT`] times the frame's brightest colour value is a broken
+//!   estimate, not a feature (absurd but finite gradients, 1e30 or a million times the colour,
+//!   were followed by the solvers into outputs of 1e30);
 //! - every replacement is counted per layer, and the counts travel with the frame into the
 //!   method's report.
 //!
@@ -31,6 +35,12 @@ pub enum Policy {
     Strict,
 }
 
+/// How far a gradient may exceed the frame's brightest colour value before it is implausible.
+/// On the project's 244 renders (validation, test, training and guard frames, HDR emitters
+/// included) the largest |gradient| is at most 1.82 times the largest colour value; 64 leaves
+/// a 35x margin for other renderers' estimators.
+pub const GRADIENT_LIMIT: f32 = 64.0;
+
 /// How many values of one layer were replaced.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 #[non_exhaustive]
@@ -39,12 +49,15 @@ pub struct LayerCounts {
     pub non_finite: u64,
     /// Negative values replaced by 0 (colour, variance, reference only).
     pub negative: u64,
+    /// Implausible values replaced by 0 (gradients beyond [`GRADIENT_LIMIT`] times the
+    /// brightest colour value only).
+    pub implausible: u64,
 }
 
 impl LayerCounts {
     /// Total replaced values.
     pub fn total(&self) -> u64 {
-        self.non_finite + self.negative
+        self.non_finite + self.negative + self.implausible
     }
 }
 
@@ -93,6 +106,9 @@ impl fmt::Display for SanitizeReport {
                 if c.negative > 0 {
                     s += &format!(" {} negative", c.negative);
                 }
+                if c.implausible > 0 {
+                    s += &format!(" {} implausible", c.implausible);
+                }
                 s
             })
             .collect();
@@ -100,34 +116,55 @@ impl fmt::Display for SanitizeReport {
     }
 }
 
-/// Checks one layer in place under `policy`, returning what was replaced.
-pub(crate) fn sanitize_layer(layer: Layer, img: &mut Image, policy: Policy) -> Result<LayerCounts> {
+/// The bound on |gradient| for a frame whose colour (already sanitised) is `color`:
+/// [`GRADIENT_LIMIT`] times its brightest value (0 for a black frame: no gradient is then
+/// plausible).
+pub(crate) fn gradient_bound(color: &Image) -> f32 {
+    let brightest = color
+        .as_slice()
+        .par_iter()
+        .copied()
+        .reduce(|| 0.0, f32::max);
+    GRADIENT_LIMIT * brightest
+}
+
+/// Checks one layer in place under `policy`, returning what was replaced. `bound`, when given,
+/// is the largest plausible magnitude (gradients, see [`gradient_bound`]).
+pub(crate) fn sanitize_layer(
+    layer: Layer,
+    img: &mut Image,
+    policy: Policy,
+    bound: Option<f32>,
+) -> Result<LayerCounts> {
     let no_negatives = layer.must_be_nonnegative();
-    let bad = |v: f32| !v.is_finite() || (no_negatives && v < 0.0);
+    let bound = bound.unwrap_or(f32::INFINITY);
+    let bad = |v: f32| !v.is_finite() || (no_negatives && v < 0.0) || v.abs() > bound;
     if policy == Policy::Strict {
         if let Some(i) = img.as_slice().par_iter().position_first(|&v| bad(v)) {
             let (w, h) = img.size();
             let (c, y, x) = (i / (w * h), (i / w) % h, i % w);
             let count = img.as_slice().par_iter().filter(|&&v| bad(v)).count();
             let v = img.as_slice()[i];
+            let what = if bound.is_finite() {
+                format!("non-finite or implausible (|v| > {bound:e}, {GRADIENT_LIMIT} times the brightest colour value)")
+            } else if no_negatives {
+                "non-finite or negative".to_owned()
+            } else {
+                "non-finite".to_owned()
+            };
             return Err(Error::input(format!(
-                "layer '{layer}' holds {count} {} value(s); first: {v} at pixel ({x}, {y}) \
+                "layer '{layer}' holds {count} {what} value(s); first: {v} at pixel ({x}, {y}) \
                  channel {} (strict mode refuses them)",
-                if no_negatives {
-                    "non-finite or negative"
-                } else {
-                    "non-finite"
-                },
                 layer.components()[c]
             )));
         }
         return Ok(LayerCounts::default());
     }
-    let (non_finite, negative) = img
+    let (non_finite, negative, implausible) = img
         .as_mut_slice()
         .par_chunks_mut(1 << 14)
         .map(|chunk| {
-            let (mut nf, mut neg) = (0u64, 0u64);
+            let (mut nf, mut neg, mut imp) = (0u64, 0u64, 0u64);
             for v in chunk {
                 if !v.is_finite() {
                     nf += 1;
@@ -135,13 +172,17 @@ pub(crate) fn sanitize_layer(layer: Layer, img: &mut Image, policy: Policy) -> R
                 } else if no_negatives && *v < 0.0 {
                     neg += 1;
                     *v = 0.0;
+                } else if v.abs() > bound {
+                    imp += 1;
+                    *v = 0.0;
                 }
             }
-            (nf, neg)
+            (nf, neg, imp)
         })
-        .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+        .reduce(|| (0, 0, 0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2));
     Ok(LayerCounts {
         non_finite,
         negative,
+        implausible,
     })
 }

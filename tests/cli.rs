@@ -72,6 +72,39 @@ fn demo_reconstruct_eval_info() {
     assert!(quiet.is_empty(), "{quiet}");
 }
 
+/// `eval BUNDLE` scores the bundle's colour (its base image), not its reference; a reference
+/// holding NaN is refused, never scored as "relMSE NaN".
+#[test]
+fn eval_scores_a_bundles_colour_and_refuses_a_nan_reference() {
+    let dir = tempfile::tempdir().unwrap();
+    let bundle = dir.path().join("demo.exr");
+    let frame = gdrecon::synth::synthetic_frame(24, 16, 4.0, 5);
+    gdrecon::io::write_bundle(&bundle, &frame).unwrap();
+    let base = gdrecon::metrics::compare(frame.color(), frame.reference().unwrap()).unwrap();
+    assert!(base.rel_mse > 1e-4);
+    let eval = out(gdrecon().arg("eval").arg(&bundle).arg("-r").arg(&bundle));
+    assert!(
+        eval.contains(&format!("relMSE {:.5e}", base.rel_mse)),
+        "{eval}"
+    );
+
+    let mut reference = frame.reference().unwrap().clone();
+    reference.plane_mut(1)[[2, 3]] = f32::NAN;
+    let nan = dir.path().join("nan_reference.exr");
+    gdrecon::io::write_rgb(&nan, &reference).unwrap();
+    let o = gdrecon()
+        .arg("eval")
+        .arg(&bundle)
+        .arg("-r")
+        .arg(&nan)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("reference holds 1 non-finite"), "{stderr}");
+    assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");
+}
+
 #[test]
 fn errors_are_one_line_with_nonzero_exit() {
     let dir = tempfile::tempdir().unwrap();

@@ -238,3 +238,57 @@ fn replaced_values_are_reported() {
         );
     }
 }
+
+/// Absurd but finite gradients (1e30, f32::MAX, a million times the colour) are implausible:
+/// replaced by 0, counted, reported; the output stays in the colour's range for every method
+/// (they used to reach 1e30, or an all-zero image for GradNet). Strict mode refuses them.
+#[test]
+fn implausible_gradients_are_replaced_and_reported() {
+    let (w, h) = (24, 20);
+    let color = filled(w, h, |(c, x, y)| {
+        0.1 + 0.9 * ((x + 2 * y + c) % 7) as f32 / 6.0
+    });
+    let (dx, dy) = exact_gradients(&color);
+    let mut bad = 0;
+    let mut poison = |g: &Image, values: &[f32]| {
+        let mut g = g.clone();
+        for (i, &v) in values.iter().enumerate() {
+            g.plane_mut(i % 3)[[3 + 2 * i, 5 + i]] = v;
+            bad += 1;
+        }
+        g
+    };
+    let dx = poison(&dx, &[1e30, -f32::MAX, 1e6, 2e6]);
+    let dy = poison(&dy, &[f32::MAX, -1e30, 1e6]);
+    let build = |policy| {
+        FrameBuilder::new()
+            .image(Layer::Color, color.clone())
+            .image(Layer::Dx, dx.clone())
+            .image(Layer::Dy, dy.clone())
+            .spp(Some(4.0))
+            .build(policy)
+    };
+    let e = build(Policy::Strict).unwrap_err().to_string();
+    assert!(
+        e.contains("layer 'dx' holds 4") && e.contains("implausible"),
+        "{e}"
+    );
+    let frame = build(Policy::Replace).unwrap();
+    let replaced = frame.sanitized().layer(Layer::Dx).implausible
+        + frame.sanitized().layer(Layer::Dy).implausible;
+    assert_eq!(replaced, bad);
+    // Plausible gradients (up to 64 x the brightest colour) are kept.
+    assert_eq!(
+        frame.dx().at(0, 0, 0),
+        exact_gradients(&color).0.at(0, 0, 0)
+    );
+    for method in Method::ALL.into_iter().filter(|m| m.is_built()) {
+        let (out, report) = reconstruct(&frame, &MethodConfig::default_for(method)).unwrap();
+        let top = out.as_slice().iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        assert!(out.all_finite() && top <= 1.5, "{method}: max |out| {top}");
+        assert!(
+            report.to_string().contains("implausible"),
+            "{method}: {report}"
+        );
+    }
+}

@@ -17,6 +17,7 @@ use exr::prelude as x;
 use exr::prelude::{AttributeValue, FlatSamples, ReadChannels, ReadLayers};
 use smallvec::SmallVec;
 
+use super::chunks;
 use crate::error::{Error, Result};
 use crate::frame::{Frame, FrameBuilder, Layer};
 use crate::image::Image;
@@ -131,8 +132,11 @@ const MAX_EXPANSION: u64 = 64;
 /// Allowance on top of the expansion bound, so small files are never refused for it.
 const SIZE_SLACK: u64 = 64 << 20;
 
-/// Reads the header and refuses sizes the file cannot plausibly hold; rewinds the reader.
-fn check_declared_size(mut reader: impl Read + Seek, path: &Path) -> Result<()> {
+/// Reads the headers and refuses what cannot be decoded into the image the file describes:
+/// features the decoder lacks (named), sizes the file cannot plausibly hold, and a chunk layout
+/// that does not store every block exactly once where it belongs ([`chunks::check`]). Rewinds
+/// the reader.
+fn check_layout(mut reader: impl Read + Seek, path: &Path) -> Result<()> {
     let file_len = reader
         .seek(SeekFrom::End(0))
         .and_then(|len| reader.seek(SeekFrom::Start(0)).map(|_| len))
@@ -140,8 +144,19 @@ fn check_declared_size(mut reader: impl Read + Seek, path: &Path) -> Result<()> 
             path: path.to_owned(),
             source,
         })?;
-    let meta = exr::meta::MetaData::read_from_buffered(&mut reader, false)
-        .map_err(|e| exr_error(e, path))?;
+    let meta = match exr::meta::MetaData::read_from_buffered(&mut reader, false) {
+        Ok(meta) => meta,
+        Err(e) => {
+            let message = match chunks::unsupported(&mut reader) {
+                Some(what) => format!("OpenEXR feature not supported: {what}"),
+                None => return Err(exr_error(e, path)),
+            };
+            return Err(Error::Exr {
+                path: path.to_owned(),
+                message,
+            });
+        }
+    };
     reader
         .seek(SeekFrom::Start(0))
         .map_err(|source| Error::Io {
@@ -162,6 +177,23 @@ fn check_declared_size(mut reader: impl Read + Seek, path: &Path) -> Result<()> 
                 "OpenEXR feature not supported: {} (its decoder's memory is not \
                  bounded); write the bundle with ZIP, PIZ, RLE, PXR24, B44 or DWA",
                 h.compression
+            ),
+        });
+    }
+    // The decoder supports no subsampled channel, not even one gdrecon would ignore.
+    if let Some(c) = meta
+        .headers
+        .iter()
+        .flat_map(|h| &h.channels.list)
+        .find(|c| c.sampling != exr::math::Vec2(1, 1))
+    {
+        return Err(Error::Exr {
+            path: path.to_owned(),
+            message: format!(
+                "OpenEXR feature not supported: channel '{}' is subsampled {} x {}: subsampled \
+                 channels are not supported, not even in layers gdrecon ignores; write every \
+                 channel at full resolution",
+                c.name, c.sampling.0, c.sampling.1
             ),
         });
     }
@@ -207,11 +239,14 @@ fn check_declared_size(mut reader: impl Read + Seek, path: &Path) -> Result<()> 
             ),
         });
     }
-    Ok(())
+    chunks::check(&mut reader, &meta.headers, file_len).map_err(|message| Error::Exr {
+        path: path.to_owned(),
+        message,
+    })
 }
 
 fn parse_bundle(mut reader: impl Read + Seek, path: &Path) -> Result<RawBundle> {
-    check_declared_size(&mut reader, path)?;
+    check_layout(&mut reader, path)?;
     let image = decode(reader, path)?;
     let err = |message: String| Error::Exr {
         path: path.to_owned(),
@@ -243,21 +278,33 @@ fn parse_bundle(mut reader: impl Read + Seek, path: &Path) -> Result<RawBundle> 
         }
         spp_attr = spp_attr.or(attribute_spp(&part.attributes.other));
         for channel in &part.channel_data.list {
+            // A channel's own name is used as it is when it names a layer ("color.R" in a part
+            // of any name, the single part's name attribute included); a part named after the
+            // layer supplies it otherwise ("R" in part "color").
             let own = channel.name.to_string();
-            let full = match &part_name {
+            let prefixed = match &part_name {
                 Some(p) if !p.is_empty() => format!("{p}.{own}"),
-                _ => own,
+                _ => own.clone(),
             };
-            match split_name(&full) {
-                Some((layer, component)) => {
-                    let samples = to_f32(&channel.sample_data);
-                    found
-                        .entry(layer)
-                        .or_default()
-                        .push((full.clone(), component, samples));
-                }
-                None => ignored.push(full),
+            let named = split_name(&own)
+                .map(|found| (own.clone(), found))
+                .or_else(|| split_name(&prefixed).map(|found| (prefixed.clone(), found)));
+            let Some((full, (layer, component))) = named else {
+                ignored.push(prefixed);
+                continue;
+            };
+            let entries = found.entry(layer).or_default();
+            if let Some((other, _, _)) = entries.iter().find(|(_, c, _)| *c == component) {
+                return Err(err(format!(
+                    "channel {layer}.{component} is stored more than once ('{other}' and \
+                     '{full}'{}): which one is the frame is ambiguous",
+                    part_name
+                        .as_deref()
+                        .map(|p| format!(" in part '{p}'"))
+                        .unwrap_or_default()
+                )));
             }
+            entries.push((full, component, to_f32(&channel.sample_data)));
         }
     }
     let spp = match spp_attr {
@@ -384,16 +431,27 @@ fn assemble(
     Ok((img, names, extra))
 }
 
-/// Reads an RGB image: the plain `R`, `G`, `B` channels of an output file, or else the
-/// `reference` layer of a bundle, or else its `color` layer. Non-finite values are kept
-/// (metrics refuse them).
+/// Reads an RGB image to evaluate: the plain `R`, `G`, `B` channels of an output file, or else
+/// the `color` layer (the base image) of a bundle. Non-finite values are kept (metrics refuse
+/// them).
 pub fn read_rgb(path: impl AsRef<Path>) -> Result<Image> {
-    let path = path.as_ref();
+    read_rgb_or_layer(path.as_ref(), "color")
+}
+
+/// Reads a reference image: the plain `R`, `G`, `B` channels of an image file, or else the
+/// `reference` layer of a bundle (never its colour: a reference that is missing is an error).
+pub fn read_reference(path: impl AsRef<Path>) -> Result<Image> {
+    read_rgb_or_layer(path.as_ref(), "reference")
+}
+
+fn read_rgb_or_layer(path: &Path, layer: &str) -> Result<Image> {
     let file = std::fs::File::open(path).map_err(|source| Error::Io {
         path: path.to_owned(),
         source,
     })?;
-    let image = decode(BufReader::new(file), path)?;
+    let mut reader = BufReader::new(file);
+    check_layout(&mut reader, path)?;
+    let image = decode(reader, path)?;
     let part = image.layer_data.first().ok_or_else(|| Error::Exr {
         path: path.to_owned(),
         message: "the file has no image parts".into(),
@@ -417,14 +475,12 @@ pub fn read_rgb(path: impl AsRef<Path>) -> Result<Image> {
             .collect();
         planes.map(|p| Image::from_fn(3, w, h, |(c, x, y)| p[c][y * w + x]))
     };
-    find("")
-        .or_else(|| find("reference"))
-        .or_else(|| find("color"))
-        .ok_or_else(|| Error::Exr {
-            path: path.to_owned(),
-            message: "no RGB image: expected channels R, G, B (or reference.R/G/B, color.R/G/B)"
-                .into(),
-        })
+    find("").or_else(|| find(layer)).ok_or_else(|| Error::Exr {
+        path: path.to_owned(),
+        message: format!(
+            "no RGB image: expected channels R, G, B or {layer}.R, {layer}.G, {layer}.B"
+        ),
+    })
 }
 
 fn write_channels(

@@ -47,7 +47,7 @@ enum Command {
     },
     /// Compare an image with a reference: relMSE, MSE, PSNR.
     Eval {
-        /// Image to evaluate (plain RGB EXR, or a bundle's color layer).
+        /// Image to evaluate (plain RGB EXR, or a bundle's color layer: the base image).
         image: PathBuf,
         /// Reference: a plain RGB EXR or a bundle with a `reference` layer.
         #[arg(long, short)]
@@ -291,7 +291,7 @@ fn info(path: &Path) -> gdrecon::Result<()> {
 
 fn eval(image: &Path, reference: &Path) -> gdrecon::Result<()> {
     let img = io::read_rgb(image)?;
-    let reference = io::read_rgb(reference)?;
+    let reference = io::read_reference(reference)?;
     let m = metrics::compare(&img, &reference)?;
     say!("{m}");
     Ok(())
