@@ -65,6 +65,9 @@ impl std::fmt::Debug for Shared {
     }
 }
 
+/// The most worker threads a context starts.
+pub const MAX_THREADS: usize = 1024;
+
 impl Context {
     /// Creates a context; fails on a zero thread count or when the OS refuses threads.
     pub fn new(options: ContextOptions) -> Result<Self> {
@@ -72,6 +75,12 @@ impl Context {
             return Err(Error::arg(
                 "threads is 0: use at least 1, or leave it unset for all cores",
             ));
+        }
+        if let Some(n) = options.threads.filter(|&n| n > MAX_THREADS) {
+            // Checked before spawning: the OS took 83 s to refuse 100000 threads.
+            return Err(Error::arg(format!(
+                "threads is {n}: at most {MAX_THREADS} (leave it unset for all cores)"
+            )));
         }
         let threads = options.threads.unwrap_or_else(|| {
             std::thread::available_parallelism()

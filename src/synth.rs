@@ -73,8 +73,24 @@ fn scene(x: f32, y: f32, w: f32, h: f32) -> ([f32; 3], [f32; 3], [f32; 3], f32) 
     (sky, [0.0; 3], [0.0, 0.0, -1.0], 100.0)
 }
 
+/// The largest synthetic frame, in pixels (8192 x 8192: its nine layers take 7 GiB).
+pub const MAX_PIXELS: usize = 1 << 26;
+
+/// Checks a synthetic frame's size before anything is allocated: both sides positive, the
+/// product at most [`MAX_PIXELS`] (a size from a command line must never abort the process).
+pub fn check_size(width: usize, height: usize) -> crate::error::Result<()> {
+    match width.checked_mul(height) {
+        Some(n) if n > 0 && n <= MAX_PIXELS => Ok(()),
+        _ => Err(crate::error::Error::arg(format!(
+            "a synthetic frame of {width} x {height}: the size must be positive and at most \
+             {MAX_PIXELS} pixels (8192 x 8192)"
+        ))),
+    }
+}
+
 /// A synthetic frame of `width` x `height` at `spp` samples per pixel, with its reference
-/// layer. Deterministic for a seed.
+/// layer. Deterministic for a seed. Callers taking sizes from outside check them with
+/// [`check_size`] first.
 pub fn synthetic_frame(width: usize, height: usize, spp: f32, seed: u64) -> Frame {
     let (w, h) = (width, height);
     let (wf, hf) = (w as f32, h as f32);

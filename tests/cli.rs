@@ -159,6 +159,91 @@ fn errors_are_one_line_with_nonzero_exit() {
     gdrecon().arg("reconstruct").assert().code(2);
 }
 
+/// Out-of-range sizes and counts from the command line are refused at once, in one line: no
+/// abort (a 100000 x 100000 demo), no overflow panic (bench --synthetic), no 83 s of thread
+/// spawning (--threads 100000), no usage page for a negative number or a usage error.
+#[test]
+fn absurd_arguments_get_one_line_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let bundle = dir.path().join("d.exr");
+    out(gdrecon()
+        .args(["demo", "--width", "8", "--height", "8", "-o"])
+        .arg(&bundle));
+    let o = dir.path().join("o.exr");
+    let cases: Vec<(Vec<std::ffi::OsString>, i32, &str)> = vec![
+        (
+            vec![
+                "demo".into(),
+                "--width".into(),
+                "100000".into(),
+                "--height".into(),
+                "100000".into(),
+                "-o".into(),
+                o.clone().into(),
+            ],
+            1,
+            "at most 67108864 pixels",
+        ),
+        (
+            vec![
+                "bench".into(),
+                "--synthetic".into(),
+                "99999999999x99999999999".into(),
+            ],
+            1,
+            "at most 67108864 pixels",
+        ),
+        (
+            vec![
+                "reconstruct".into(),
+                bundle.clone().into(),
+                "--threads".into(),
+                "100000".into(),
+                "-o".into(),
+                o.clone().into(),
+            ],
+            1,
+            "at most 1024",
+        ),
+        (
+            vec![
+                "reconstruct".into(),
+                bundle.clone().into(),
+                "--spp".into(),
+                "-1".into(),
+                "-o".into(),
+                o.clone().into(),
+            ],
+            1,
+            "spp is -1",
+        ),
+        (
+            vec![
+                "reconstruct".into(),
+                bundle.clone().into(),
+                "--bogus".into(),
+            ],
+            2,
+            "unexpected argument '--bogus'",
+        ),
+    ];
+    for (args, code, says) in cases {
+        let t = std::time::Instant::now();
+        let a = gdrecon().args(&args).assert().code(code);
+        let err = String::from_utf8(a.get_output().stderr.clone()).unwrap();
+        assert!(
+            err.starts_with("gdrecon: error:") && err.contains(says) && err.lines().count() == 1,
+            "{args:?}: {err}"
+        );
+        // Generous: a refusal does no work (the thread count took 83 s before).
+        assert!(
+            t.elapsed().as_secs() < 10,
+            "{args:?} took {:?}",
+            t.elapsed()
+        );
+    }
+}
+
 #[test]
 fn bench_prints_a_table_and_csv() {
     let dir = tempfile::tempdir().unwrap();

@@ -39,6 +39,9 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Reconstruct a frame bundle into an RGB OpenEXR.
+    // "--spp -1" is a value (refused with its range), "--exposure -2" a legal one: neither is
+    // an unknown flag.
+    #[command(allow_negative_numbers = true)]
     Reconstruct(ReconstructArgs),
     /// Describe a frame bundle: layers, size, spp, replaced values.
     Info {
@@ -54,6 +57,7 @@ enum Command {
         reference: PathBuf,
     },
     /// Write a synthetic frame bundle with a known reference (no renderer needed).
+    #[command(allow_negative_numbers = true)]
     Demo {
         /// Output bundle.
         #[arg(long, short)]
@@ -72,6 +76,7 @@ enum Command {
         seed: u64,
     },
     /// Time methods on frames: median of several runs, relMSE when a reference is present.
+    #[command(allow_negative_numbers = true)]
     Bench(bench::BenchArgs),
     /// List the methods' parameters: name, type, default, accepted values, meaning.
     Params {
@@ -186,7 +191,10 @@ struct ReconstructArgs {
 }
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => return usage_error(e),
+    };
     let result = match cli.command {
         Command::Reconstruct(args) => reconstruct(args),
         Command::Info { input } => info(&input),
@@ -208,6 +216,21 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// Help and version go to stdout as clap writes them; a usage error is one line on stderr
+/// (clap's own first line and a pointer to `--help`), exit code 2.
+fn usage_error(e: clap::Error) -> ExitCode {
+    use clap::error::ErrorKind;
+    if matches!(e.kind(), ErrorKind::DisplayHelp | ErrorKind::DisplayVersion) {
+        let _ = e.print();
+        return ExitCode::SUCCESS;
+    }
+    let rendered = e.render().to_string();
+    let first = rendered.lines().next().unwrap_or("invalid arguments");
+    let first = first.strip_prefix("error: ").unwrap_or(first);
+    eprintln!("gdrecon: error: {first} (see gdrecon --help)");
+    ExitCode::from(2)
 }
 
 /// Reads a bundle and applies a `--spp` override.
@@ -298,9 +321,10 @@ fn eval(image: &Path, reference: &Path) -> gdrecon::Result<()> {
 }
 
 fn demo(output: &Path, width: usize, height: usize, spp: f32, seed: u64) -> gdrecon::Result<()> {
-    if width == 0 || height == 0 || !(spp.is_finite() && spp > 0.0) {
+    synth::check_size(width, height)?;
+    if !(spp.is_finite() && spp > 0.0) {
         return Err(gdrecon::Error::InvalidArgument(format!(
-            "demo needs a positive size and spp, got {width} x {height} at {spp} spp"
+            "demo needs a positive spp, got {spp}"
         )));
     }
     let frame = synth::synthetic_frame(width, height, spp, seed);

@@ -41,6 +41,7 @@ pub fn load(path: &Path) -> gdrecon::Result<BenchFrame> {
 /// A synthetic frame of the size `spec` (`WxH`), 16 spp, with its reference.
 pub fn synthetic(spec: &str) -> gdrecon::Result<BenchFrame> {
     let (w, h) = parse_size(spec)?;
+    synth::check_size(w, h)?;
     let frame = synth::synthetic_frame(w, h, 16.0, 1);
     Ok(BenchFrame {
         name: format!("synthetic {w}x{h}"),
