@@ -169,7 +169,11 @@ fn output_never_holds_nan_or_inf_whatever_the_input() {
         let (out, report) =
             gdrecon::recon::reconstruct(&frame, &gdrecon::MethodConfig::default_for(m)).unwrap();
         assert!(out.all_finite(), "{m}");
-        assert_eq!(report.sanitized.total(), 3, "{m}");
+        // 3 non-finite values, and the two 1e30 gradients are implausible.
+        assert_eq!(report.sanitized.total(), 5, "{m}");
+        let implausible = report.sanitized.layer(Layer::Dx).implausible
+            + report.sanitized.layer(Layer::Dy).implausible;
+        assert_eq!(implausible, 2, "{m}");
     }
 }
 

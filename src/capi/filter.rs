@@ -574,7 +574,8 @@ pub unsafe extern "C" fn gdr_filter_execute(filter: *mut gdr_filter) -> gdr_erro
                 None => true,
             }
         };
-        let progress = Progress::new(&on_progress);
+        // The flag is polled inside the methods' loops: a cancel lands within one band or tile.
+        let progress = Progress::new(&on_progress).with_cancel(cancel);
         let State {
             plan, out, output, ..
         } = &mut *st;

@@ -20,6 +20,7 @@
 use rayon::prelude::*;
 
 use crate::image::Image;
+use crate::progress::Progress;
 
 /// Per-edge weights, shared by R, G, B: `m` (fidelity) and `lambda * a` (smoothness).
 pub(crate) struct EnhanceWeights {
@@ -585,7 +586,7 @@ fn update(
 }
 
 /// What the reference schedule did.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub(crate) struct EnhanceOutcome {
     /// Step halvings (each reverted the image to the start).
     pub reverts: u32,
@@ -595,13 +596,27 @@ pub(crate) struct EnhanceOutcome {
     pub loss_end: f64,
 }
 
-/// The release's literal schedule; returns the enhanced image.
+/// [`enhance_or_stop`], never stopped (the tests' entry point).
+#[cfg(test)]
 pub(crate) fn enhance_reference(
     guide: &Image,
     dx: &Image,
     dy: &Image,
     wt: &EnhanceWeights,
     iterations: u32,
+) -> (Image, EnhanceOutcome) {
+    enhance_or_stop(guide, dx, dy, wt, iterations, &Progress::none())
+}
+
+/// The release's literal schedule; returns the enhanced image. Once `stop` is cancelled it
+/// ends early and returns the guide (the caller checks `stop`).
+pub(crate) fn enhance_or_stop(
+    guide: &Image,
+    dx: &Image,
+    dy: &Image,
+    wt: &EnhanceWeights,
+    iterations: u32,
+    stop: &Progress,
 ) -> (Image, EnhanceOutcome) {
     let (gx, gy) = (dx.as_slice(), dy.as_slice());
     let start = guide.as_slice();
@@ -624,11 +639,17 @@ pub(crate) fn enhance_reference(
         let mut todo = (last - it + 1) as usize;
         let passes = todo.div_ceil(fused_steps(guide.width()));
         for p in 0..passes {
+            if stop.stopped() {
+                break;
+            }
             let steps = todo / (passes - p);
             let energy = p + 1 == passes && last == check;
             cur_loss = sweeper.run(&cur, &mut next, step, steps, energy);
             std::mem::swap(&mut cur, &mut next);
             todo -= steps;
+        }
+        if stop.stopped() {
+            return (guide.clone(), EnhanceOutcome::default());
         }
         it = last + 1;
         if let Some(l) = cur_loss {

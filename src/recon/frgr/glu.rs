@@ -22,6 +22,7 @@ use rayon::prelude::*;
 
 use super::util::reflect;
 use crate::image::Image;
+use crate::progress::Progress;
 
 /// Fit error beyond which a block is point-sampled.
 const ERROR_THRESHOLD: f32 = 0.15;
@@ -68,7 +69,14 @@ pub(crate) fn crop(img: Image, w: usize, h: usize) -> Image {
 
 impl Glu {
     /// Fits the 2x level structure to the guide `j` (even size).
+    #[cfg(test)]
     pub fn new(j: &Image) -> Self {
+        Self::new_or_stop(j, &Progress::none())
+    }
+
+    /// [`Glu::new`], returning an unusable fit early once `stop` is cancelled (the caller
+    /// checks `stop`).
+    pub fn new_or_stop(j: &Image, stop: &Progress) -> Self {
         let (w, h) = j.size();
         assert!(
             w % 2 == 0 && h % 2 == 0,
@@ -83,6 +91,9 @@ impl Glu {
         };
         let coarse = glu.downsample(j, false);
         let errors = glu.refit(j, &coarse, None);
+        if stop.stopped() {
+            return glu;
+        }
         let mut changed = vec![false; cw * ch];
         for by in 0..ch {
             for bx in 0..cw {

@@ -340,7 +340,8 @@ impl Frgr {
         spp: f32,
         depth: usize,
         report: &mut Report,
-    ) -> (Image, Image) {
+        progress: &Progress,
+    ) -> Result<(Image, Image)> {
         let (w, h) = inp.colour.size();
         assert_eq!(
             (w, h),
@@ -369,7 +370,10 @@ impl Frgr {
                     *d = v * 0.1;
                 }
             }
-            let fit = report.time(&format!("glu (level {depth})"), || glu::Glu::new(&j));
+            let fit = report.time(&format!("glu (level {depth})"), || {
+                glu::Glu::new_or_stop(&j, progress)
+            });
+            progress.check()?;
             let (pdx, pdy) = pad_gradients(&inp.dx, &inp.dy);
             let (cdx, cdy) = fit.downsample_gradients(&pdx, &pdy);
             let coarse = LevelInputs {
@@ -382,7 +386,7 @@ impl Frgr {
                 guide: Cow::Owned(fit.downsample(&guide, false)),
                 converged: None,
             };
-            let (r, v) = self.run_level(&coarse, spp, depth + 1, report);
+            let (r, v) = self.run_level(&coarse, spp, depth + 1, report, progress)?;
             let (u, uv) = fit.upsample(&r, Some(&v));
             let uv = uv.expect("variance requested");
             Some((glu::crop(u, w, h), glu::crop(uv, w, h)))
@@ -404,14 +408,16 @@ impl Frgr {
                     inp.normal.as_deref(),
                     lambda,
                 );
-                enhance::enhance_reference(
+                enhance::enhance_or_stop(
                     &inp.guide,
                     &inp.dx,
                     &inp.dy,
                     &weights,
                     self.cfg.enhance_iterations,
+                    progress,
                 )
             });
+            progress.check()?;
             report.note(format!(
                 "level {depth} ({w} x {h}): enhancement {} iterations, {} reverts, energy {:.4e} -> {:.4e}",
                 self.cfg.enhance_iterations, outcome.reverts, outcome.loss_start, outcome.loss_end
@@ -445,8 +451,9 @@ impl Frgr {
             ));
         }
         let (out, var, skipped) = report.time(&format!("qp filter (level {depth})"), || {
-            qp::gradient_guided_filter(&level)
+            qp::filter_or_stop(&level, progress)
         });
+        progress.check()?;
         if skipped.empty > 0 {
             report.skip(format!(
                 "QP on {} empty pixels of level {depth} (zero colour and variance in the window)",
@@ -460,7 +467,7 @@ impl Frgr {
                 crate::recon::converged::RELATIVE_NOISE
             ));
         }
-        (out, var)
+        Ok((out, var))
     }
 }
 
@@ -519,6 +526,7 @@ impl Reconstructor for Frgr {
                 estimate_variance(colour)
             }
         };
+        progress.check()?;
         let removed = report.time("outliers", || {
             let n = outliers::remove_outliers(dx) + outliers::remove_outliers(dy);
             outliers::zero_boundary(dx, true);
@@ -526,6 +534,7 @@ impl Reconstructor for Frgr {
             n
         });
         report.note(format!("gradient outliers replaced: {removed}"));
+        progress.check()?;
         let (albedo, normal) = (frame.albedo(), frame.normal());
         let (albedo, normal) = if albedo.is_none() && normal.is_none() {
             report.skip("feature terms and prefilter (no albedo or normal): reduced path");
@@ -539,7 +548,11 @@ impl Reconstructor for Frgr {
                  (bundles carry no feature variance)"
             ));
             report.time("feature prefilter", || {
-                let filter = |f: &Image| {
+                let filter = |f| {
+                    // After a cancel the feature stays as it is: the update below returns.
+                    if progress.stopped() {
+                        return Cow::Borrowed(f);
+                    }
                     let v = prefilter::feature_variance(f, spp);
                     Cow::Owned(prefilter::prefilter(f, &v))
                 };
@@ -549,7 +562,7 @@ impl Reconstructor for Frgr {
         progress.update(0.05)?;
         let guide = match self.cfg.guide {
             FrgrGuide::Rdfc => Cow::Owned(report.time("rdfc", || {
-                rdfc::rdfc(colour, &var, albedo.as_deref(), normal.as_deref())
+                rdfc::rdfc(colour, &var, albedo.as_deref(), normal.as_deref(), progress)
             })),
             FrgrGuide::PoissonL1 => report
                 .time("l1 guide", || {
@@ -570,7 +583,7 @@ impl Reconstructor for Frgr {
             FrgrGuide::Prior => {
                 report.skip("pre-denoiser (guide: the prior)");
                 let prior = self.prior.as_mut().expect("the prior guide is planned");
-                Cow::Owned(scaled(&*prior.get(frame, report)?, scale).into_owned())
+                Cow::Owned(scaled(&*prior.get(frame, report, progress)?, scale).into_owned())
             }
         };
         progress.update(0.4)?;
@@ -584,7 +597,7 @@ impl Reconstructor for Frgr {
             guide,
             converged: converged_mask(frame),
         };
-        let (filtered, _variance) = self.run_level(&inputs, spp, 0, report);
+        let (filtered, _variance) = self.run_level(&inputs, spp, 0, report, progress)?;
         for (o, &v) in out.as_mut_slice().iter_mut().zip(filtered.as_slice()) {
             *o = v / scale;
         }

@@ -44,6 +44,7 @@ use rayon::prelude::*;
 
 use super::util::reflect;
 use crate::image::Image;
+use crate::progress::Progress;
 use band::{Padded, Planes, Term, Unscale, BAND};
 pub(crate) use lanes::LANES;
 use lanes::{F32x, Mask};
@@ -66,26 +67,37 @@ struct Scratch<const K: usize> {
     w: Vec<F32x>,
 }
 
-/// Runs the filter over a level; returns the filtered colour and its variance.
-/// The filtered image, its variance, and the pixels skipped.
+/// [`filter_or_stop`], never stopped (the tests' entry point).
+#[cfg(test)]
+pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, Skipped) {
+    filter_or_stop(level, &Progress::none())
+}
+
+/// Runs the filter over a level; returns the filtered colour, its variance, and the pixels
+/// skipped. Once `stop` is cancelled the bands not yet started are skipped (the result is then
+/// incomplete; the caller checks `stop`).
 ///
 /// A pixel whose whole window has zero colour and zero variance is skipped: its output is a
 /// convex combination of zeros whatever the weights, so 0 (and variance 0) exactly, and the QP
 /// is not solved (black backgrounds, letterboxing, masked-out regions). A converged pixel
 /// (`level.converged`) keeps its colour and variance.
-pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, Skipped) {
+pub(crate) fn filter_or_stop(level: &QpLevel, stop: &Progress) -> (Image, Image, Skipped) {
     let al = level.alphas();
     // `b0` and `b3` are always on, so 6, 9, 12 or 15 rows.
     match 3 * al.iter().filter(|&&a| a != 0.0).count() {
-        6 => filter_rows::<6>(level, &al),
-        9 => filter_rows::<9>(level, &al),
-        12 => filter_rows::<12>(level, &al),
-        _ => filter_rows::<MAX_K>(level, &al),
+        6 => filter_rows::<6>(level, &al, stop),
+        9 => filter_rows::<9>(level, &al, stop),
+        12 => filter_rows::<12>(level, &al, stop),
+        _ => filter_rows::<MAX_K>(level, &al, stop),
     }
 }
 
-/// [`gradient_guided_filter`] with `K` bias rows.
-fn filter_rows<const K: usize>(level: &QpLevel, al: &[f32; 5]) -> (Image, Image, Skipped) {
+/// [`filter_or_stop`] with `K` bias rows.
+fn filter_rows<const K: usize>(
+    level: &QpLevel,
+    al: &[f32; 5],
+    stop: &Progress,
+) -> (Image, Image, Skipped) {
     let (w, h) = level.img.size();
     let mut out = Image::zeros(3, w, h);
     let mut out_var = Image::zeros(3, w, h);
@@ -98,7 +110,13 @@ fn filter_rows<const K: usize>(level: &QpLevel, al: &[f32; 5]) -> (Image, Image,
         .collect();
     let bands: Vec<(Vec<f32>, Skipped)> = (0..h.div_ceil(BAND))
         .into_par_iter()
-        .map(|band| filter_band::<K>(level, al, &cols, band))
+        .map(|band| {
+            if stop.stopped() {
+                (Vec::new(), Skipped::default()) // copied below as no rows
+            } else {
+                filter_band::<K>(level, al, &cols, band)
+            }
+        })
         .collect();
     let mut skipped = Skipped::default();
     for (band, (o, s)) in bands.iter().enumerate() {

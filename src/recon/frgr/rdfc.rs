@@ -38,6 +38,7 @@ use rayon::prelude::*;
 use super::fastmath::{exp_nonpositive, max, min};
 use super::util::{reflect, PaddedRows};
 use crate::image::Image;
+use crate::progress::Progress;
 
 /// One candidate filter: patch radius `f` and colour bandwidth (`None`: colour term off).
 #[derive(Clone, Copy, Debug)]
@@ -519,13 +520,8 @@ impl Nlm<'_> {
     }
 }
 
-/// Joint NLM / bilateral filtering of `data` guided by `colour` (with its per-channel variance
-/// `var`) and `features`, for each candidate; returns per candidate the filtered data and the
-/// centre weight ratio `w_centre / sum w` per pixel. Colour, variance and data have 3
-/// channels.
-///
-/// Tiles (in parallel) loop over the window offsets, and per offset over their rows; a tile's
-/// result depends on nothing but its pixels, so the output does not depend on the threads.
+/// [`nlm_candidates_or_stop`], never stopped (the tests' entry point).
+#[cfg(test)]
 pub(crate) fn nlm_candidates(
     colour: &Image,
     var: &Image,
@@ -533,6 +529,34 @@ pub(crate) fn nlm_candidates(
     data: &Image,
     radius: usize,
     candidates: &[Candidate],
+) -> Vec<(Image, Vec<f32>)> {
+    nlm_candidates_or_stop(
+        colour,
+        var,
+        features,
+        data,
+        radius,
+        candidates,
+        &Progress::none(),
+    )
+}
+
+/// Joint NLM / bilateral filtering of `data` guided by `colour` (with its per-channel variance
+/// `var`) and `features`, for each candidate; returns per candidate the filtered data and the
+/// centre weight ratio `w_centre / sum w` per pixel. Colour, variance and data have 3
+/// channels. Once `stop` is cancelled the tiles not yet started are skipped (the result is
+/// then incomplete; the caller checks `stop`).
+///
+/// Tiles (in parallel) loop over the window offsets, and per offset over their rows; a tile's
+/// result depends on nothing but its pixels, so the output does not depend on the threads.
+fn nlm_candidates_or_stop(
+    colour: &Image,
+    var: &Image,
+    features: &[Feature],
+    data: &Image,
+    radius: usize,
+    candidates: &[Candidate],
+    stop: &Progress,
 ) -> Vec<(Image, Vec<f32>)> {
     assert!(
         colour.channels() == 3 && var.channels() == 3 && data.channels() == 3,
@@ -580,13 +604,24 @@ pub(crate) fn nlm_candidates(
                 .map(move |x0| ((x0, (x0 + TILE.0).min(w)), (y0, (y0 + TILE.1).min(h))))
         })
         .collect();
-    let results: Vec<(Vec<f32>, Vec<f32>)> =
-        tiles.par_iter().map(|&(xr, yr)| nlm.tile(xr, yr)).collect();
+    let results: Vec<(Vec<f32>, Vec<f32>)> = tiles
+        .par_iter()
+        .map(|&(xr, yr)| {
+            if stop.stopped() {
+                (Vec::new(), Vec::new())
+            } else {
+                nlm.tile(xr, yr)
+            }
+        })
+        .collect();
     let (m, dch) = (candidates.len(), data.channels());
     let mut out: Vec<(Image, Vec<f32>)> = (0..m)
         .map(|_| (Image::zeros(dch, w, h), vec![0.0f32; n]))
         .collect();
     for (&((x0, x1), (y0, y1)), (num, ratio)) in tiles.iter().zip(&results) {
+        if num.is_empty() {
+            continue; // skipped after a cancel
+        }
         let (tw, tn) = (x1 - x0, (x1 - x0) * (y1 - y0));
         for (k, (img, rat)) in out.iter_mut().enumerate() {
             let o = img.as_mut_slice();
@@ -603,17 +638,27 @@ pub(crate) fn nlm_candidates(
     out
 }
 
-/// The signature of [`nlm_candidates`] (tests swap in a straightforward version).
-type NlmFn = fn(&Image, &Image, &[Feature], &Image, usize, &[Candidate]) -> Vec<(Image, Vec<f32>)>;
+/// The signature of [`nlm_candidates_or_stop`] (tests swap in a straightforward version).
+type NlmFn = fn(
+    &Image,
+    &Image,
+    &[Feature],
+    &Image,
+    usize,
+    &[Candidate],
+    &Progress,
+) -> Vec<(Image, Vec<f32>)>;
 
-/// The RDFC pre-denoised guide of `colour` (variance of the mean `var`).
+/// The RDFC pre-denoised guide of `colour` (variance of the mean `var`); incomplete when
+/// `stop` is cancelled (the caller checks it).
 pub(crate) fn rdfc(
     colour: &Image,
     var: &Image,
     albedo: Option<&Image>,
     normal: Option<&Image>,
+    stop: &Progress,
 ) -> Image {
-    rdfc_with(colour, var, albedo, normal, nlm_candidates)
+    rdfc_with(colour, var, albedo, normal, nlm_candidates_or_stop, stop)
 }
 
 fn rdfc_with(
@@ -622,11 +667,15 @@ fn rdfc_with(
     albedo: Option<&Image>,
     normal: Option<&Image>,
     nlm_candidates: NlmFn,
+    stop: &Progress,
 ) -> Image {
     let (w, h) = colour.size();
     let n = w * h;
     let features: Vec<Feature> = albedo.into_iter().chain(normal).map(Feature::new).collect();
-    let filtered = nlm_candidates(colour, var, &features, colour, 10, &CANDIDATES);
+    let filtered = nlm_candidates(colour, var, &features, colour, 10, &CANDIDATES, stop);
+    if stop.stopped() {
+        return colour.clone();
+    }
     // SURE per candidate, smoothed by a 3 x 3 box.
     let (c, v) = (colour.as_slice(), var.as_slice());
     let mut tmp = Vec::new();
@@ -668,6 +717,7 @@ fn rdfc_with(
             patch: 1,
             kc: Some(0.5),
         }],
+        stop,
     )
     .remove(0)
     .0;

@@ -480,7 +480,7 @@ mod enabled {
                     prepare += filled - started;
                     let data = self.data.slice(s![.., ..net.data_channels, .., ..]);
                     let mut plane = out.plane_mut(c);
-                    net.run(data, self.grad.view(), |y| {
+                    net.run(data, self.grad.view(), progress, |y| {
                         // Keep the core, inside the frame; inverse μ-law, clamp at 0.
                         let rows = tile.y.core_start..tile.y.core_end.min(h);
                         let cols = tile.x.core_start..tile.x.core_end.min(w);

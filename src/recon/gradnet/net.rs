@@ -8,14 +8,21 @@
 //! the CPU arena on with memory patterns (fastest; safe because every tile of a plan has the
 //! same shape, so the arena does not keep growing).
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
 use ndarray::{ArrayView2, ArrayView4};
 use ort::ep;
 use ort::session::builder::GraphOptimizationLevel;
-use ort::session::Session;
+use ort::session::{RunOptions, Session};
 use ort::value::TensorRef;
 
 use super::model::ModelBytes;
 use crate::error::{Error, Result};
+use crate::progress::Progress;
+
+/// How often a run's watcher looks at the cancel flag.
+const POLL: Duration = Duration::from_millis(5);
 
 /// A loaded network.
 pub(crate) struct Net {
@@ -111,20 +118,41 @@ impl Net {
         })
     }
 
-    /// Runs the network on one batch item and hands its `H x W` output to `consume`.
+    /// Runs the network on one batch item and hands its `H x W` output to `consume`. A cancel
+    /// of `stop` during the run terminates it (ONNX Runtime's run options; a watcher thread
+    /// polls the flag every [`POLL`]): one inference at 720p takes a second or more.
     pub fn run(
         &mut self,
         data: ArrayView4<'_, f32>,
         grad: ArrayView4<'_, f32>,
+        stop: &Progress,
         consume: impl FnOnce(ArrayView2<'_, f32>),
     ) -> Result<()> {
         let fail = |e: ort::Error| Error::Runtime(format!("GradNet inference failed: {e}"));
         let data = TensorRef::from_array_view(data).map_err(fail)?;
         let grad = TensorRef::from_array_view(grad).map_err(fail)?;
-        let outputs = self
-            .session
-            .run(ort::inputs!["data" => data, "grad" => grad])
-            .map_err(fail)?;
+        let options = RunOptions::new().map_err(fail)?;
+        let running = AtomicBool::new(true);
+        let session = &mut self.session;
+        let outputs = std::thread::scope(|s| {
+            if stop.can_stop() {
+                s.spawn(|| {
+                    while running.load(Ordering::Acquire) {
+                        if stop.stopped() {
+                            let _ = options.terminate();
+                            return;
+                        }
+                        std::thread::sleep(POLL);
+                    }
+                });
+            }
+            let outputs =
+                session.run_with_options(ort::inputs!["data" => data, "grad" => grad], &options);
+            running.store(false, Ordering::Release);
+            outputs
+        });
+        stop.check()?;
+        let outputs = outputs.map_err(fail)?;
         let out = outputs
             .get("output")
             .ok_or_else(|| Error::Runtime("the graph returned no `output`".into()))?

@@ -13,6 +13,7 @@ use super::prep::{self, FeatureNorm, FrameMap, Window};
 use crate::frame::Frame;
 use crate::image::Image;
 use crate::io::exr::read_bundle;
+use crate::progress::Progress;
 use crate::validate::Policy;
 
 fn fixture(name: &str) -> PathBuf {
@@ -106,7 +107,7 @@ fn network_matches_torch() {
         for c in 0..3 {
             let sl = ndarray::s![c..c + 1, .., .., ..];
             let mut worst = 0.0f32;
-            net.run(data.slice(sl), grad.slice(sl), |y| {
+            net.run(data.slice(sl), grad.slice(sl), &Progress::none(), |y| {
                 let w = want.slice(ndarray::s![c, 0, .., ..]);
                 worst = y
                     .iter()

@@ -76,7 +76,7 @@ impl Reconstructor for PriorOnly {
         report: &mut Report,
         progress: &Progress,
     ) -> Result<()> {
-        let prior = self.0.get(frame, report)?;
+        let prior = self.0.get(frame, report, progress)?;
         out.as_mut_slice().copy_from_slice(prior.as_slice());
         progress.update(1.0)
     }

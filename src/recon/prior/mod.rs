@@ -126,7 +126,7 @@ impl Reconstructor for OnPrior {
         report: &mut Report,
         progress: &Progress,
     ) -> Result<()> {
-        let prior = self.prior.get(frame, report)?.into_owned();
+        let prior = self.prior.get(frame, report, progress)?.into_owned();
         // Only what screened Poisson reads: the prior as its colour and the gradients (copying
         // the other layers cost 60 MB and a sanitising pass at 720p). All are already clean
         // (a given prior is sanitised like colour, OIDN's output is confined), so building
@@ -168,21 +168,28 @@ impl Prior {
     }
 
     /// The frame's prior: its `prior` layer when it has one, else OIDN's output on its base
-    /// image (timed as the stage "prior (oidn)"). The report says which.
+    /// image (timed as the stage "prior (oidn)"; a cancel of `progress` stops OIDN). The report
+    /// says which.
     pub(crate) fn get<'a>(
         &'a mut self,
         frame: &'a Frame,
         report: &mut Report,
+        progress: &Progress,
     ) -> Result<Cow<'a, Image>> {
         if let Some(given) = frame.prior() {
             report.note("prior: the frame's 'prior' layer (given by the caller)");
             return Ok(Cow::Borrowed(given));
         }
-        self.compute(frame, report).map(Cow::Borrowed)
+        self.compute(frame, report, progress).map(Cow::Borrowed)
     }
 
     #[cfg(feature = "oidn")]
-    fn compute(&mut self, frame: &Frame, report: &mut Report) -> Result<&Image> {
+    fn compute(
+        &mut self,
+        frame: &Frame,
+        report: &mut Report,
+        progress: &Progress,
+    ) -> Result<&Image> {
         if self.computed.is_none() {
             let device = self.context.denoiser()?;
             let quality = match self.quality {
@@ -206,7 +213,7 @@ impl Prior {
             if let Some(normal) = normal {
                 interleave(normal, n, -1.0, 1.0);
             }
-            let out = filter.execute(albedo.is_some(), normal.is_some())?;
+            let out = filter.execute(albedo.is_some(), normal.is_some(), progress)?;
             deinterleave(out, image);
             Ok::<_, crate::Error>(())
         })?;

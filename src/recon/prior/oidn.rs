@@ -25,6 +25,7 @@ use libloading::Library;
 
 use crate::dylib::{first_that_opens, numbered, Search};
 use crate::error::{Error, Result};
+use crate::progress::Progress;
 
 /// `OIDN_DEVICE_TYPE_CPU`.
 const DEVICE_CPU: c_int = 1;
@@ -40,6 +41,18 @@ pub(crate) const QUALITY_FAST: c_int = 4;
 const MAJOR: c_int = 2;
 
 type Handle = *mut c_void;
+
+/// `OIDNProgressMonitorFunction`: returns false to cancel the running filter.
+type Monitor = unsafe extern "C" fn(*mut c_void, f64) -> bool;
+
+/// The progress monitor: continues while the plan's cancel flag is clear (OIDN calls it often
+/// during a run, which is how a cancel stops a second-long denoise within milliseconds).
+unsafe extern "C" fn keep_going(user: *mut c_void, _done: f64) -> bool {
+    // SAFETY: `user` is the `&Progress` that `Filter::execute` borrows for the whole run, and
+    // unsets before returning.
+    let progress = unsafe { &*user.cast::<Progress>() };
+    !progress.stopped()
+}
 
 /// The functions used, resolved once.
 struct Api {
@@ -68,6 +81,7 @@ struct Api {
     set_filter_int: unsafe extern "C" fn(Handle, *const c_char, c_int),
     commit_filter: unsafe extern "C" fn(Handle),
     execute_filter: unsafe extern "C" fn(Handle),
+    set_filter_progress: unsafe extern "C" fn(Handle, Option<Monitor>, *mut c_void),
     release_filter: unsafe extern "C" fn(Handle),
 }
 
@@ -155,6 +169,7 @@ fn open(path: &Path) -> std::result::Result<Oidn, String> {
         set_filter_int: symbol!("oidnSetFilterInt"),
         commit_filter: symbol!("oidnCommitFilter"),
         execute_filter: symbol!("oidnExecuteFilter"),
+        set_filter_progress: symbol!("oidnSetFilterProgressMonitorFunction"),
         release_filter: symbol!("oidnReleaseFilter"),
     };
     Ok(Oidn {
@@ -330,8 +345,13 @@ impl Filter {
     }
 
     /// Denoises the colour buffer (with the albedo and normal buffers when asked) and returns
-    /// the interleaved output.
-    pub(crate) fn execute(&mut self, albedo: bool, normal: bool) -> Result<&[f32]> {
+    /// the interleaved output; a cancel of `progress` stops the run (`Error::Cancelled`).
+    pub(crate) fn execute(
+        &mut self,
+        albedo: bool,
+        normal: bool,
+        progress: &Progress,
+    ) -> Result<&[f32]> {
         let api = &self.device.lib.api;
         let (w, h) = (self.width, self.height);
         let stride = 3 * std::mem::size_of::<f32>();
@@ -372,9 +392,24 @@ impl Filter {
             self.device.check("committing the RT filter")?;
             self.committed = Some((albedo, normal));
         }
+        let watch = progress.can_stop();
+        if watch {
+            let user = std::ptr::from_ref(progress).cast_mut().cast::<c_void>();
+            // SAFETY: `progress` outlives the run; the monitor is unset right after it.
+            unsafe { (api.set_filter_progress)(self.handle, Some(keep_going), user) };
+        }
         // SAFETY: committed with live, correctly sized buffers; `&mut self` keeps them
         // unaliased while OIDN reads and writes them.
         unsafe { (api.execute_filter)(self.handle) };
+        if watch {
+            // SAFETY: a live filter; null unsets the monitor.
+            unsafe { (api.set_filter_progress)(self.handle, None, std::ptr::null_mut()) };
+        }
+        if progress.stopped() {
+            // OIDN's error for the cancelled run (OIDN_ERROR_CANCELLED) is read and dropped.
+            let _ = self.device.check("running the RT filter");
+            return Err(Error::Cancelled);
+        }
         self.device.check("running the RT filter")?;
         Ok(&self.output)
     }

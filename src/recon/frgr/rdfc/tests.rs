@@ -15,6 +15,7 @@ fn naive_nlm_candidates(
     data: &Image,
     radius: usize,
     candidates: &[Candidate],
+    _stop: &Progress,
 ) -> Vec<(Image, Vec<f32>)> {
     let (w, h) = colour.size();
     let n = w * h;
@@ -188,7 +189,7 @@ fn tiled_nlm_matches_the_straightforward_one() {
     ];
     for (f, data, radius, cands) in cases {
         let fast = nlm_candidates(&colour, &var, f, data, radius, cands);
-        let slow = naive_nlm_candidates(&colour, &var, f, data, radius, cands);
+        let slow = naive_nlm_candidates(&colour, &var, f, data, radius, cands, &Progress::none());
         for ((a, ra), (b, rb)) in fast.iter().zip(&slow) {
             let d = max_rel(a, b, 1e-3);
             assert!(d <= 1e-4, "radius {radius}: output differs by {d:e}");
@@ -224,7 +225,15 @@ fn tiled_nlm_matches_the_straightforward_one_on_tiny_images() {
         let (colour, var, albedo, normal) = synthetic(w, h);
         let feats = [Feature::new(&albedo), Feature::new(&normal)];
         let fast = nlm_candidates(&colour, &var, &feats, &colour, 10, &CANDIDATES);
-        let slow = naive_nlm_candidates(&colour, &var, &feats, &colour, 10, &CANDIDATES);
+        let slow = naive_nlm_candidates(
+            &colour,
+            &var,
+            &feats,
+            &colour,
+            10,
+            &CANDIDATES,
+            &Progress::none(),
+        );
         for ((a, _), (b, _)) in fast.iter().zip(&slow) {
             let d = max_rel(a, b, 1e-3);
             assert!(d <= 1e-4, "{w} x {h}: output differs by {d:e}");
@@ -235,13 +244,20 @@ fn tiled_nlm_matches_the_straightforward_one_on_tiny_images() {
 #[test]
 fn rdfc_matches_the_straightforward_one() {
     let (colour, var, albedo, normal) = synthetic(90, 50);
-    let fast = rdfc(&colour, &var, Some(&albedo), Some(&normal));
+    let fast = rdfc(
+        &colour,
+        &var,
+        Some(&albedo),
+        Some(&normal),
+        &Progress::none(),
+    );
     let slow = rdfc_with(
         &colour,
         &var,
         Some(&albedo),
         Some(&normal),
         naive_nlm_candidates,
+        &Progress::none(),
     );
     let d = max_rel(&fast, &slow, 1e-3);
     assert!(d <= 1e-4, "{d:e}");
@@ -263,10 +279,17 @@ fn rdfc_on_frames_matches_the_straightforward_one() {
         let var = smooth_variance(frame.variance().unwrap(), 2);
         let (colour, albedo, normal) = (frame.color(), frame.albedo(), frame.normal());
         let t = std::time::Instant::now();
-        let fast = rdfc(colour, &var, albedo, normal);
+        let fast = rdfc(colour, &var, albedo, normal, &Progress::none());
         let t_fast = t.elapsed();
         let t = std::time::Instant::now();
-        let slow = rdfc_with(colour, &var, albedo, normal, naive_nlm_candidates);
+        let slow = rdfc_with(
+            colour,
+            &var,
+            albedo,
+            normal,
+            naive_nlm_candidates,
+            &Progress::none(),
+        );
         let t_slow = t.elapsed();
         let peak = slow.as_slice().iter().fold(0.0f32, |m, v| m.max(v.abs()));
         let abs = fast.max_abs_diff(&slow);
@@ -280,7 +303,15 @@ fn rdfc_on_frames_matches_the_straightforward_one() {
         // The candidates alone (no argmin, whose near-ties can flip either way).
         let feats: Vec<Feature> = albedo.into_iter().chain(normal).map(Feature::new).collect();
         let a = nlm_candidates(colour, &var, &feats, colour, 10, &CANDIDATES);
-        let b = naive_nlm_candidates(colour, &var, &feats, colour, 10, &CANDIDATES);
+        let b = naive_nlm_candidates(
+            colour,
+            &var,
+            &feats,
+            colour,
+            10,
+            &CANDIDATES,
+            &Progress::none(),
+        );
         let rel = (a.iter().zip(&b))
             .map(|((x, _), (y, _))| max_rel(x, y, 1e-3))
             .fold(0.0, f32::max);
@@ -294,7 +325,7 @@ fn zero_variance_returns_the_input() {
     let img = Image::from_fn(3, w, h, |(c, x, y)| {
         ((x * 3 + y * 5 + c) % 7) as f32 * 0.1 + 0.05
     });
-    let out = rdfc(&img, &Image::zeros(3, w, h), None, None);
+    let out = rdfc(&img, &Image::zeros(3, w, h), None, None, &Progress::none());
     let d = out.max_abs_diff(&img);
     assert!(d < 1e-5, "{d}");
 }
@@ -311,7 +342,7 @@ fn noise_is_reduced_on_a_flat_image() {
     };
     let img = Image::from_fn(3, w, h, |_| 0.5 + rnd());
     let var = Image::from_fn(3, w, h, |_| 0.2 * 0.2 / 12.0);
-    let out = rdfc(&img, &var, None, None);
+    let out = rdfc(&img, &var, None, None, &Progress::none());
     let mse = |a: &Image| {
         a.as_slice()
             .iter()

@@ -1,0 +1,66 @@
+//! Cancelling at 1280 x 720: every method returns `Cancelled` promptly, wherever in its work
+//! the cancel lands. A second thread sets the plan's cancel flag (`Progress::with_cancel`, what
+//! `gdr_filter_cancel` sets) after a delay, and the time from the flag to the return is
+//! measured. The bound here is generous (CI machines are loaded and differ); the figures the
+//! test prints are the measurement (docs/benchmarks.md, "Cancel latency").
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use gdrecon::{synth, Context, ContextOptions, Error, Method, MethodConfig, Plan, Progress};
+
+/// Generous: the target is 100 ms; a loaded CI machine must not fail on noise.
+const BOUND: Duration = Duration::from_millis(750);
+
+#[test]
+fn every_method_returns_promptly_after_a_cancel_at_720p() {
+    let frame = synth::synthetic_frame(1280, 720, 16.0, 7);
+    let context = Context::new(ContextOptions::with_threads(Some(2))).unwrap();
+    let mut worst = Duration::ZERO;
+    for method in Method::ALL.into_iter().filter(|m| m.is_built()) {
+        let config = MethodConfig::default_for(method);
+        let mut plan = match Plan::new(&context, &config, 1280, 720) {
+            Ok(plan) => plan,
+            Err(e) => panic!("{method}: {e}"),
+        };
+        let mut latencies = Vec::new();
+        for delay_ms in [30u64, 250, 700] {
+            let flag = AtomicBool::new(false);
+            let progress = Progress::none().with_cancel(&flag);
+            let (result, latency) = std::thread::scope(|s| {
+                let set_at = s.spawn(|| {
+                    std::thread::sleep(Duration::from_millis(delay_ms));
+                    flag.store(true, Ordering::SeqCst);
+                    Instant::now()
+                });
+                let result = plan.execute(&frame, &progress);
+                let returned = Instant::now();
+                let set_at = set_at.join().unwrap();
+                (result, returned.saturating_duration_since(set_at))
+            });
+            match result {
+                Err(Error::Cancelled) => latencies.push(latency),
+                // Finished before the cancel: nothing to measure at this delay.
+                Ok(_) => {}
+                Err(e) => panic!("{method}: {e}"),
+            }
+        }
+        let text: Vec<String> = latencies
+            .iter()
+            .map(|l| format!("{:.1}", l.as_secs_f64() * 1e3))
+            .collect();
+        println!(
+            "cancel latency at 1280x720, {method}: {} ms",
+            if text.is_empty() {
+                "finished before every cancel".to_owned()
+            } else {
+                text.join(", ")
+            }
+        );
+        for l in latencies {
+            worst = worst.max(l);
+            assert!(l < BOUND, "{method}: returned {l:?} after the cancel");
+        }
+    }
+    println!("worst cancel latency: {:.1} ms", worst.as_secs_f64() * 1e3);
+}
