@@ -576,8 +576,8 @@ mod tests {
         };
         for i in 0..4 {
             for j in 0..4 {
-                assert_eq!(pass(i).partially_overlaps(&pass(j)), false);
-                assert_eq!(brute_force(&pass(i), &pass(j)), false);
+                assert!(!pass(i).partially_overlaps(&pass(j)));
+                assert!(!brute_force(&pass(i), &pass(j)));
             }
         }
         // Shifted by one float: shares elements.
@@ -614,7 +614,7 @@ mod tests {
         .unwrap();
         assert!(!a.partially_overlaps(&far));
         // Views spanning addresses near the top of the address space.
-        let top = usize::MAX / 2 & !3;
+        let top = (usize::MAX / 2) & !3;
         let a = view(
             top,
             4,
