@@ -8,7 +8,7 @@
 #    through pkg-config, dynamically and statically linked, and run them (bit-for-bit equality,
 #    layouts, every error case, cancellation latency), and tests/c/test_safety.c (a renderer's
 #    misuse: callbacks that release or re-enter, concurrent logging, panics that must print
-#    nothing, fork after commit, overlap checks of huge views);
+#    nothing, fork after commit, overlap checks of huge views.
 # 5. run both again under valgrind (no leaks, no invalid accesses);
 # 6. build and run the C, C++ and Python examples on the bundled sample frame.
 # Honours CARGO_TARGET_DIR. The last line is "N passed, N failed".
@@ -101,7 +101,7 @@ ok "reference written"
 step "compile the C tests (C99, C++, static)"
 cflags="$(pkg-config --cflags gdrecon)"
 libs="$(pkg-config --libs gdrecon)"
-static_libs="$(pkg-config --libs --static gdrecon)"
+static_libs="$(pkg-config --libs gdrecon-static)"
 warn=(-Wall -Wextra -Werror -pedantic)
 gcc -std=c99 "${warn[@]}" -O1 -g $cflags tests/c/test_capi.c -o "$work/test_c" $libs -lm \
     -Wl,-rpath,"$prefix/lib" && ok "gcc -std=c99"
@@ -109,8 +109,9 @@ g++ -x c++ -std=c++11 "${warn[@]}" -O1 -g $cflags tests/c/test_capi.c -o "$work/
     -Wl,-rpath,"$prefix/lib" && ok "g++ -std=c++11"
 gcc -std=c99 "${warn[@]}" -O1 -g -pthread $cflags tests/c/test_safety.c -o "$work/test_safety" $libs \
     -Wl,-rpath,"$prefix/lib" && ok "gcc -std=c99 test_safety.c"
-gcc -std=c99 "${warn[@]}" -O1 $cflags tests/c/test_capi.c -o "$work/test_static" \
-    "$prefix/lib/libgdrecon.a" ${static_libs/-lgdrecon/} -lm && ok "gcc, static library"
+gcc -std=c99 "${warn[@]}" -O1 $cflags tests/c/test_capi.c -o "$work/test_static" $static_libs -lm \
+    && ok "gcc, static library (pkg-config gdrecon-static)"
+if ldd "$work/test_static" | grep -q libgdrecon; then bad "test_static needs libgdrecon.so"; else ok "test_static: no libgdrecon.so (ldd)"; fi
 if readelf -d "$work/test_c" | grep -q "NEEDED.*libgdrecon.so.0"; then ok "linked against the soname"; else bad "test_c does not need libgdrecon.so.0"; fi
 
 step "run the C tests"
@@ -145,7 +146,10 @@ else
 fi
 
 step "examples"
-make -s -C examples/c GDRECON_PREFIX="$prefix" BUILD="$work/examples" >/dev/null && ok "examples/c build"
+# Exactly as examples/c/Makefile documents it, in a copy of the folder, without PKG_CONFIG_PATH.
+cp -r examples/c "$work/examples"
+(cd "$work/examples" && env -u PKG_CONFIG_PATH make -s GDRECON_PREFIX="$prefix" >/dev/null) &&
+    ok "examples/c: make GDRECON_PREFIX=PREFIX"
 for ex in reconstruct reconstruct_cpp; do
     if "$work/examples/$ex" "$sample" "$work/out_$ex" >"$work/$ex.log" 2>&1; then
         ok "examples/c/$ex: $(grep -E '^method ' "$work/$ex.log" | paste -sd ';' -)"
@@ -161,6 +165,24 @@ else
     cat "$work/py.log"
     bad "examples/python"
 fi
+
+step "README: the C section's commands"
+# The block after the marker, run as written from the repository root, with PREFIX moved to a
+# temporary directory; what it writes into the checkout is removed afterwards.
+readme="$work/readme.sh"
+sed -n '/<!-- tests\/c\/run.sh runs the next block -->/,/^```$/p' README.md | sed '1,2d;$d' |
+    sed "s|^PREFIX=.*|PREFIX=\"$work/readme-prefix\"|" >"$readme"
+readme_outputs=(reconstruct reconstruct_static examples/c/reconstruct examples/c/reconstruct_cpp)
+if [ ! -s "$readme" ]; then
+    bad "README has no block after the run.sh marker"
+elif (env -u PKG_CONFIG_PATH bash -euo pipefail "$readme") >"$work/readme.log" 2>&1 &&
+    ! ldd reconstruct_static | grep -q libgdrecon && ldd reconstruct | grep -q "$work/readme-prefix/lib/libgdrecon.so"; then
+    ok "README commands ($(grep -c . "$readme") lines; reconstruct uses the installed .so, reconstruct_static none)"
+else
+    cat "$readme" "$work/readme.log"
+    bad "README commands"
+fi
+rm -f "${readme_outputs[@]}" sample_*.pfm
 
 echo "$passed passed, $failed failed"
 [ "$failed" -eq 0 ]
