@@ -2,7 +2,7 @@
 # Installs the C library, header and pkg-config file into a prefix:
 #   bash packaging/install.sh PREFIX
 # after `cargo build --release` (honours CARGO_TARGET_DIR). Layout:
-#   PREFIX/include/gdrecon.h
+#   PREFIX/include/gdrecon.h, gdrecon.hpp (the C++17 wrapper)
 #   PREFIX/lib/libgdrecon.so.X.Y.Z, libgdrecon.so.X -> (the soname), libgdrecon.so ->
 #   PREFIX/lib/libgdrecon.a
 #   PREFIX/lib/pkgconfig/gdrecon.pc          (pkg-config --cflags --libs gdrecon: the shared library)
@@ -21,7 +21,7 @@ for f in libgdrecon.so libgdrecon.a; do
     [ -f "$target/$f" ] || { echo "install.sh: $target/$f is missing: run cargo build --release" >&2; exit 1; }
 done
 mkdir -p "$prefix/include" "$prefix/lib/pkgconfig"
-install -m 644 "$root/include/gdrecon.h" "$prefix/include/gdrecon.h"
+install -m 644 "$root/include/gdrecon.h" "$root/include/gdrecon.hpp" "$prefix/include/"
 install -m 755 "$target/libgdrecon.so" "$prefix/lib/libgdrecon.so.$version"
 ln -sf "libgdrecon.so.$version" "$prefix/lib/libgdrecon.so.$major"
 ln -sf "libgdrecon.so.$major" "$prefix/lib/libgdrecon.so"

@@ -8,7 +8,8 @@
 #    through pkg-config, dynamically and statically linked, and run them (bit-for-bit equality,
 #    layouts, every error case, cancellation latency), and tests/c/test_safety.c (a renderer's
 #    misuse: callbacks that release or re-enter, concurrent logging, panics that must print
-#    nothing, fork after commit, overlap checks of huge views.
+#    nothing, fork after commit, overlap checks of huge views), and tests/c/test_cpp.cpp as
+#    C++17 (include/gdrecon.hpp);
 # 5. run both again under valgrind (no leaks, no invalid accesses);
 # 6. build and run the C, C++ and Python examples on the bundled sample frame.
 # Honours CARGO_TARGET_DIR. The last line is "N passed, N failed".
@@ -109,6 +110,8 @@ g++ -x c++ -std=c++11 "${warn[@]}" -O1 -g $cflags tests/c/test_capi.c -o "$work/
     -Wl,-rpath,"$prefix/lib" && ok "g++ -std=c++11"
 gcc -std=c99 "${warn[@]}" -O1 -g -pthread $cflags tests/c/test_safety.c -o "$work/test_safety" $libs \
     -Wl,-rpath,"$prefix/lib" && ok "gcc -std=c99 test_safety.c"
+g++ -std=c++17 "${warn[@]}" -O1 -g $cflags tests/c/test_cpp.cpp -o "$work/test_hpp" $libs \
+    -Wl,-rpath,"$prefix/lib" && ok "g++ -std=c++17 test_cpp.cpp (include/gdrecon.hpp)"
 gcc -std=c99 "${warn[@]}" -O1 $cflags tests/c/test_capi.c -o "$work/test_static" $static_libs -lm \
     && ok "gcc, static library (pkg-config gdrecon-static)"
 if ldd "$work/test_static" | grep -q libgdrecon; then bad "test_static needs libgdrecon.so"; else ok "test_static: no libgdrecon.so (ldd)"; fi
@@ -119,6 +122,7 @@ counted test_c "$work/test_c" "$work/ref" "$sample"
 counted test_cpp "$work/test_cpp" "$work/ref" "$sample"
 counted test_static "$work/test_static" "$work/ref"
 counted test_safety "$work/test_safety"
+counted test_hpp "$work/test_hpp"
 
 step "GradNet with ONNX Runtime next to the library (discovery step 3)"
 ort_lib="${ORT_DYLIB_PATH:-}"
@@ -138,8 +142,9 @@ vg=(valgrind -q --error-exitcode=1 --leak-check=full --child-silent-after-fork=y
     --errors-for-leak-kinds=definite,indirect --show-leak-kinds=definite,indirect)
 GDR_TEST_NO_TIMING=1 GDR_TEST_NO_GRADNET=1 counted valgrind "${vg[@]}" "$work/test_c" "$work/ref" "$sample"
 GDR_TEST_NO_TIMING=1 counted valgrind_safety "${vg[@]}" "$work/test_safety"
+counted valgrind_hpp "${vg[@]}" "$work/test_hpp"
 if grep -qE "definitely lost|indirectly lost|Invalid (read|write)|uninitialised" \
-    "$work/valgrind.log" "$work/valgrind_safety.log"; then
+    "$work/valgrind.log" "$work/valgrind_safety.log" "$work/valgrind_hpp.log"; then
     bad "valgrind reported errors"
 else
     ok "valgrind: no leaks, no invalid accesses"
