@@ -313,6 +313,57 @@ private:
     std::unique_ptr<ProgressFunction> progress_;
 };
 
+// A frame bundle read from an OpenEXR file (gdr_frame), for callers without an EXR reader.
+class Frame {
+public:
+    // One layer: packed planar floats (`channels` planes of width x height), or null.
+    struct Layer {
+        const float* data = nullptr;
+        size_t channels = 0;
+        explicit operator bool() const noexcept { return data != nullptr; }
+    };
+
+    explicit Frame(const std::string& path) {
+        check(gdr_frame_read(path.c_str(), &handle_));
+        check(gdr_frame_get_info(handle_, &width_, &height_, &spp_));
+    }
+    Frame(Frame&& other) noexcept
+        : handle_(std::exchange(other.handle_, nullptr)), width_(other.width_),
+          height_(other.height_), spp_(other.spp_) {}
+    Frame& operator=(Frame&& other) noexcept {
+        if (this != &other) {
+            gdr_frame_release(&handle_);
+            handle_ = std::exchange(other.handle_, nullptr);
+            width_ = other.width_;
+            height_ = other.height_;
+            spp_ = other.spp_;
+        }
+        return *this;
+    }
+    Frame(const Frame&) = delete;
+    Frame& operator=(const Frame&) = delete;
+    ~Frame() { gdr_frame_release(&handle_); }
+
+    size_t width() const noexcept { return width_; }
+    size_t height() const noexcept { return height_; }
+    // Samples per pixel, 0 when unknown.
+    float spp() const noexcept { return spp_; }
+    // Layer `name` ("color", "dx", ...); empty when the bundle lacks it. Valid while this
+    // object lives: pass it to Filter::setImagePlanar.
+    Layer layer(const char* name) const {
+        Layer l;
+        check(gdr_frame_get_layer(handle_, name, &l.data, &l.channels));
+        return l;
+    }
+
+    gdr_frame* get() const noexcept { return handle_; }
+
+private:
+    gdr_frame* handle_ = nullptr;
+    size_t width_ = 0, height_ = 0;
+    float spp_ = 0;
+};
+
 }  // namespace gdr
 
 #endif  // GDRECON_HPP

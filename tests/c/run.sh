@@ -122,7 +122,7 @@ counted test_c "$work/test_c" "$work/ref" "$sample"
 counted test_cpp "$work/test_cpp" "$work/ref" "$sample"
 counted test_static "$work/test_static" "$work/ref"
 counted test_safety "$work/test_safety"
-counted test_hpp "$work/test_hpp"
+counted test_hpp "$work/test_hpp" "$sample"
 
 step "GradNet with ONNX Runtime next to the library (discovery step 3)"
 ort_lib="${ORT_DYLIB_PATH:-}"
@@ -142,7 +142,7 @@ vg=(valgrind -q --error-exitcode=1 --leak-check=full --child-silent-after-fork=y
     --errors-for-leak-kinds=definite,indirect --show-leak-kinds=definite,indirect)
 GDR_TEST_NO_TIMING=1 GDR_TEST_NO_GRADNET=1 counted valgrind "${vg[@]}" "$work/test_c" "$work/ref" "$sample"
 GDR_TEST_NO_TIMING=1 counted valgrind_safety "${vg[@]}" "$work/test_safety"
-counted valgrind_hpp "${vg[@]}" "$work/test_hpp"
+counted valgrind_hpp "${vg[@]}" "$work/test_hpp" "$sample"
 if grep -qE "definitely lost|indirectly lost|Invalid (read|write)|uninitialised" \
     "$work/valgrind.log" "$work/valgrind_safety.log" "$work/valgrind_hpp.log"; then
     bad "valgrind reported errors"

@@ -1,6 +1,6 @@
 // Tests of include/gdrecon.hpp, the C++17 wrapper (tests/c/run.sh compiles it with -Wall
 // -Wextra -Werror -pedantic and runs it, also under valgrind):
-//   test_cpp
+//   test_cpp [SAMPLE.exr]
 // Results equal the C API's bit for bit; failures throw gdr::Error with their code; a cancel
 // is execute() == false; handles move; parameters are listed with ranges, defaults and
 // choices. The last line is "N passed, N failed".
@@ -268,9 +268,31 @@ void test_params() {
     CHECK(saw_choice && saw_exclusive);
 }
 
+void test_frame(const char* sample) {
+    THROWS(gdr::Frame("/nonexistent/frame.exr"), GDR_ERROR_IO);
+    gdr::Frame frame(sample);
+    CHECK(frame.width() > 0 && frame.height() > 0 && frame.spp() > 0);
+    gdr::Frame moved(std::move(frame));
+    CHECK(moved.get() && !frame.get());
+    gdr::Frame::Layer color = moved.layer("color");
+    CHECK(color && color.channels == 3);
+    CHECK(moved.layer("depth").channels == 1);
+    THROWS(moved.layer("colour"), GDR_ERROR_INVALID_ARGUMENT);
+    gdr::Context ctx = context();
+    gdr::Filter f(ctx, "l2");
+    std::vector<float> out(moved.width() * moved.height() * 3);
+    for (const char* name : {"color", "dx", "dy"}) {
+        gdr::Frame::Layer l = moved.layer(name);
+        f.setImagePlanar(name, l.data, moved.width(), moved.height(), l.channels);
+    }
+    f.setImage("output", out.data(), moved.width(), moved.height());
+    f.commit();
+    CHECK(f.execute());
+}
+
 }  // namespace
 
-int main() {
+int main(int argc, char** argv) {
     CHECK(gdr::version() == GDR_VERSION);
     try {
         test_results_equal_the_c_api();
@@ -278,6 +300,7 @@ int main() {
         test_cancel_and_callbacks();
         test_moves();
         test_params();
+        if (argc > 1) test_frame(argv[1]);
     } catch (const std::exception& e) {
         std::fprintf(stderr, "FAIL: unexpected exception: %s\n", e.what());
         ++failed;
