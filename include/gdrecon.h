@@ -60,8 +60,13 @@
  * output GDR_ERROR_OVERLAP, calls in the wrong order GDR_ERROR_INVALID_OPERATION. Functions
  * that create an object set *out to NULL on failure. No panic or exception crosses the
  * boundary: an internal bug becomes GDR_ERROR_UNKNOWN. GDR_ERROR_CANCELLED is the answer to a
- * cancellation, not a failure of the library. Failures are also sent to the context's log
- * callback at GDR_LOG_ERROR. The library never prints and never exits the process.
+ * cancellation, not a failure of the library. Every failure of a function given a context or
+ * a filter is also sent to that context's log callback at GDR_LOG_ERROR (a cancellation at
+ * GDR_LOG_INFO). The library never prints and never exits the process: the first
+ * gdr_context_new installs a panic hook that keeps panics on the library's threads (inside a
+ * gdr_ call, or in a context's pool) off stderr, their message going to gdr_get_error and the
+ * log callback; panics elsewhere go to the hook installed before it, so a Rust host's own hook
+ * keeps working (one installed later replaces gdrecon's for the whole process).
  *
  * Threads. The library runs on its context's own pool (never pinned). All functions may be
  * called from any thread. A gdr_context may be shared by threads and filters freely. A
@@ -70,8 +75,19 @@
  * with GDR_ERROR_INVALID_OPERATION instead of blocking, except gdr_filter_cancel (any thread,
  * any time) and retain/release. Different filters may execute concurrently. A gdr_frame is
  * immutable and may be read from several threads. Do not release a handle while another thread
- * still uses it. Callbacks run on library threads; user pointers are passed back untouched.
- * Callbacks must not throw or longjmp.
+ * still uses it; a callback may release the handle it runs for (the running call holds its own
+ * reference until it returns). Callbacks run on library threads; user pointers are passed back
+ * untouched. Callbacks must not throw or longjmp. The log callback is called for one context
+ * by one thread at a time (a lock is held while it runs); replacing or removing it waits for a
+ * running call, after which the old one is never called again. It may call gdr_ functions,
+ * except gdr_context_set_log_callback on its own context (GDR_ERROR_INVALID_OPERATION); what
+ * they would log on that context is dropped.
+ *
+ * fork(). A context's pool threads are not copied into a child process: in a child forked
+ * after gdr_context_commit, the context and its filters cannot run (gdr_filter_new,
+ * gdr_filter_commit and gdr_filter_execute return GDR_ERROR_INVALID_OPERATION, naming the
+ * fork, instead of waiting forever); they may only be released. Create and commit a new
+ * context in the child (or fork before committing, or exec).
  *
  * ABI evolution. Objects are opaque and configured by string-keyed setters, so new
  * parameters, images and methods never change the ABI. One struct crosses it, gdr_param_info
@@ -191,11 +207,11 @@ enum gdr_log_level
  {
     // Nothing is logged.
     GDR_LOG_NONE = 0,
-    // Failed calls.
+    // Failed calls (a cancellation is logged at `GDR_LOG_INFO`: it is not a failure).
     GDR_LOG_ERROR = 1,
     // Replaced input values and other suspicious input (the default level).
     GDR_LOG_WARNING = 2,
-    // One report per execution: method, stage times, notes.
+    // One report per execution: method, stage times, notes; cancelled executions.
     GDR_LOG_INFO = 3,
     // Planning decisions.
     GDR_LOG_DEBUG = 4,
@@ -290,6 +306,12 @@ gdr_error gdr_context_get_int(const gdr_context *ctx, const char *name, int32_t 
 gdr_error gdr_context_set_string(gdr_context *ctx, const char *name, const char *value);
 
 // Set (or with NULL remove) the log callback; it may be called from any thread, never concurrently for one context.
+//
+// Calls for one context are serialised (a lock is held while the callback runs). Replacing or
+// removing the callback waits for a running call to return: afterwards the old callback is
+// never called again. The callback may call any gdr_ function except this one on the same
+// context (`GDR_ERROR_INVALID_OPERATION`); what those calls would log on the same context is
+// dropped, not delivered. It must not wait for a thread that is replacing the callback.
 gdr_error gdr_context_set_log_callback(gdr_context *ctx, gdr_log_fn callback, void *user);
 
 // Apply the settings and start the thread pool; filters can be created afterwards.
@@ -353,8 +375,10 @@ gdr_error gdr_filter_unset_image(gdr_filter *filter, const char *name);
 
 // Set (or with NULL remove) the progress callback; it runs on a library thread during execute, never concurrently with itself.
 //
-// It receives the fraction done in [0, 1] and returns false to cancel. It must not call
-// functions on the same filter (they fail with `GDR_ERROR_INVALID_OPERATION`) and must not throw.
+// It receives the fraction done in [0, 1] and returns false to cancel. It must not throw.
+// Calls on the same filter from it fail with `GDR_ERROR_INVALID_OPERATION`, except
+// `gdr_filter_cancel`, `gdr_filter_retain` and `gdr_filter_release` (releasing the last
+// reference is safe: execute holds its own until it returns).
 gdr_error gdr_filter_set_progress_callback(gdr_filter *filter, gdr_progress_fn callback, void *user);
 
 // Validate the images and parameters and plan the method for the image size (expensive the first time; cheap when only pointers changed).

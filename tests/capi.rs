@@ -696,6 +696,65 @@ fn a_panic_becomes_a_status_and_the_filter_stays_usable() {
     assert!(same_bits(&out, &expected));
 }
 
+/// The panic hook the first `gdr_context_new` installs keeps the library's panics (on the
+/// calling thread and on pool threads) off stderr and hands every other panic to the hook
+/// installed before it. Run in a child process of this test binary: hooks are process-wide.
+#[test]
+#[cfg(feature = "testing")]
+fn library_panics_are_silent_and_the_host_hook_still_runs() {
+    const NAME: &str = "library_panics_are_silent_and_the_host_hook_still_runs";
+    if std::env::var_os("GDR_TEST_HOOK_CHILD").is_some() {
+        return hook_child();
+    }
+    let out = std::process::Command::new(std::env::current_exe().unwrap())
+        .args(["--exact", NAME, "--nocapture", "--test-threads=1"])
+        .env("GDR_TEST_HOOK_CHILD", "1")
+        .output()
+        .unwrap();
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(stdout.contains("host hook: 1 call"), "{stdout}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}
+
+#[cfg(feature = "testing")]
+fn hook_child() {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    static CALLS: AtomicUsize = AtomicUsize::new(0);
+    std::panic::set_hook(Box::new(|_| {
+        CALLS.fetch_add(1, Ordering::SeqCst);
+    }));
+    let ctx = context(); // installs gdrecon's hook in front of the one above
+    let f = filter(ctx, "l2");
+    for name in [c"internal_test_panic", c"internal_test_panic_in_pool"] {
+        let m = fails(
+            unsafe { gdr_filter_set_bool(f, name.as_ptr(), true) },
+            GDR_ERROR_UNKNOWN,
+        );
+        assert!(m.contains("deliberate panic"), "{m}");
+    }
+    assert_eq!(
+        CALLS.load(Ordering::SeqCst),
+        0,
+        "library panics reach no hook"
+    );
+    let host = std::thread::spawn(|| panic!("a host panic")).join();
+    assert!(host.is_err());
+    assert_eq!(
+        CALLS.load(Ordering::SeqCst),
+        1,
+        "a host panic reaches the host's hook"
+    );
+    println!("host hook: 1 call");
+    unsafe {
+        ok(gdr_filter_release(&mut { f }));
+        ok(gdr_context_release(&mut { ctx }));
+    }
+}
+
 struct CancelState {
     calls: u32,
     cancelled_at: Option<Instant>,

@@ -1,39 +1,17 @@
 // The same as reconstruct.c in C++, with the buffers a renderer would have: one interleaved
 // RGBA float buffer per pass (copied here from the bundle), the result written in place into
-// the colour buffer's RGB, alpha untouched. RAII wrappers release the handles; errors become
-// exceptions.
+// the colour buffer's RGB, alpha untouched. Through include/gdrecon.hpp: RAII handles, errors
+// as gdr::Error exceptions.
 //
 //   reconstruct_cpp FRAME.exr OUT_PREFIX      -> OUT_PREFIX_l2.pfm, OUT_PREFIX_l1.pfm, ...
 #include <cstdio>
-#include <memory>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
-#include "gdrecon.h"
+#include "gdrecon.hpp"
 
 namespace {
-
-void check(gdr_error code, const char* what) {
-    if (code == GDR_ERROR_NONE) return;
-    const char* message = "";
-    gdr_get_error(&message);
-    throw std::runtime_error(std::string(what) + ": " + gdr_error_name(code) + ": " + message);
-}
-#define CHECKED(call) check((call), #call)
-
-struct ContextDeleter {
-    void operator()(gdr_context* c) const { gdr_context_release(&c); }
-};
-struct FilterDeleter {
-    void operator()(gdr_filter* f) const { gdr_filter_release(&f); }
-};
-struct FrameDeleter {
-    void operator()(gdr_frame* f) const { gdr_frame_release(&f); }
-};
-using Context = std::unique_ptr<gdr_context, ContextDeleter>;
-using Filter = std::unique_ptr<gdr_filter, FilterDeleter>;
-using Frame = std::unique_ptr<gdr_frame, FrameDeleter>;
 
 // A render pass as an interleaved RGBA buffer.
 struct Rgba {
@@ -41,14 +19,13 @@ struct Rgba {
     std::vector<float> data;
 };
 
-Rgba to_rgba(gdr_frame* frame, const char* layer, size_t w, size_t h) {
-    const float* planar = nullptr;
-    size_t channels = 0;
-    CHECKED(gdr_frame_get_layer(frame, layer, &planar, &channels));
-    if (!planar || channels != 3) throw std::runtime_error(std::string("no RGB layer ") + layer);
+Rgba to_rgba(const gdr::Frame& frame, const char* layer) {
+    const gdr::Frame::Layer planar = frame.layer(layer);
+    if (!planar || planar.channels != 3) throw std::runtime_error(std::string("no RGB layer ") + layer);
+    const size_t w = frame.width(), h = frame.height();
     Rgba out{w, h, std::vector<float>(w * h * 4, 1.0f)};
     for (size_t c = 0; c < 3; c++)
-        for (size_t p = 0; p < w * h; p++) out.data[p * 4 + c] = planar[c * w * h + p];
+        for (size_t p = 0; p < w * h; p++) out.data[p * 4 + c] = planar.data[c * w * h + p];
     return out;
 }
 
@@ -69,35 +46,27 @@ int main(int argc, char** argv) try {
         std::fprintf(stderr, "usage: %s FRAME.exr OUT_PREFIX\n", argv[0]);
         return 2;
     }
-    gdr_context* raw_ctx = nullptr;
-    CHECKED(gdr_context_new(&raw_ctx));
-    Context ctx(raw_ctx);
-    CHECKED(gdr_context_commit(ctx.get()));
-    gdr_frame* raw_frame = nullptr;
-    CHECKED(gdr_frame_read(argv[1], &raw_frame));
-    Frame frame(raw_frame);
-    size_t w = 0, h = 0;
-    float spp = 0;
-    CHECKED(gdr_frame_get_info(frame.get(), &w, &h, &spp));
+    gdr::Context ctx;
+    ctx.commit();
+    const gdr::Frame frame(argv[1]);
+    const size_t w = frame.width(), h = frame.height();
 
-    for (uint32_t m = 0; const char* method = gdr_method_name(m); m++) {
-        Rgba color = to_rgba(frame.get(), "color", w, h);
-        const Rgba dx = to_rgba(frame.get(), "dx", w, h);
-        const Rgba dy = to_rgba(frame.get(), "dy", w, h);
-        gdr_filter* raw_filter = nullptr;
-        CHECKED(gdr_filter_new(ctx.get(), method, &raw_filter));
-        Filter filter(raw_filter);
+    for (const std::string& method : gdr::methods()) {
+        Rgba color = to_rgba(frame, "color");
+        const Rgba dx = to_rgba(frame, "dx");
+        const Rgba dy = to_rgba(frame, "dy");
+        gdr::Filter filter(ctx, method);
         const size_t px = 4 * sizeof(float);  // RGB read out of RGBA through the pixel stride
-        CHECKED(gdr_filter_set_image(filter.get(), "color", color.data.data(), w, h, 3, px, 0));
-        CHECKED(gdr_filter_set_image(filter.get(), "dx", dx.data.data(), w, h, 3, px, 0));
-        CHECKED(gdr_filter_set_image(filter.get(), "dy", dy.data.data(), w, h, 3, px, 0));
-        CHECKED(gdr_filter_set_image(filter.get(), "output", color.data.data(), w, h, 3, px, 0));
-        CHECKED(gdr_filter_set_float(filter.get(), "spp", spp));
-        CHECKED(gdr_filter_commit(filter.get()));
-        CHECKED(gdr_filter_execute(filter.get()));
+        filter.setImage("color", color.data.data(), w, h, 3, px);
+        filter.setImage("dx", dx.data.data(), w, h, 3, px);
+        filter.setImage("dy", dy.data.data(), w, h, 3, px);
+        filter.setImage("output", color.data.data(), w, h, 3, px);
+        filter.set("spp", frame.spp());
+        filter.commit();
+        filter.execute();
         const std::string path = std::string(argv[2]) + "_" + method + ".pfm";
         write_pfm(path, color);
-        std::printf("%s: wrote %s (in place, RGBA)\n", method, path.c_str());
+        std::printf("%s: wrote %s (in place, RGBA)\n", method.c_str(), path.c_str());
     }
     return 0;
 } catch (const std::exception& e) {

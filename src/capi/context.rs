@@ -1,23 +1,61 @@
 //! `gdr_context`: the thread pool and global settings, reference counted.
 
+use std::cell::RefCell;
 use std::ffi::{c_char, CString};
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use super::gdr_error::*;
-use super::{c_str, err, gdr_error, gdr_log_fn, gdr_log_level, guard, out_ptr, CResult, UserPtr};
+use super::{
+    c_str, catch, err, gdr_error, gdr_log_fn, gdr_log_level, guard, install_panic_hook, out_ptr,
+    CResult, CapiError, UserPtr,
+};
 use crate::context::{Context, ContextOptions};
 
 /// A context: thread count, log settings, ONNX Runtime and model locations (opaque).
 pub struct gdr_context {
     settings: Mutex<Settings>,
     log_level: AtomicU32,
-    log: Mutex<
-        Option<(
-            unsafe extern "C" fn(*mut std::ffi::c_void, u32, *const c_char),
-            UserPtr,
-        )>,
-    >,
+    /// The log callback; the lock is held while it runs, so calls never overlap and
+    /// replacing it waits for a running call.
+    log: Mutex<Option<(LogFn, UserPtr)>>,
+}
+
+type LogFn = unsafe extern "C" fn(*mut std::ffi::c_void, u32, *const c_char);
+
+thread_local! {
+    /// The contexts whose log callback this thread is running (callbacks may nest).
+    static LOGGING: RefCell<Vec<usize>> = const { RefCell::new(Vec::new()) };
+}
+
+/// True when this thread is inside `ctx`'s log callback.
+fn logging(ctx: &gdr_context) -> bool {
+    let key = std::ptr::from_ref(ctx) as usize;
+    LOGGING
+        .try_with(|l| l.borrow().contains(&key))
+        .unwrap_or(false)
+}
+
+/// Marks this thread inside `ctx`'s log callback while alive.
+struct InCallback(usize);
+
+impl InCallback {
+    fn enter(ctx: &gdr_context) -> InCallback {
+        let key = std::ptr::from_ref(ctx) as usize;
+        let _ = LOGGING.try_with(|l| l.borrow_mut().push(key));
+        InCallback(key)
+    }
+}
+
+impl Drop for InCallback {
+    fn drop(&mut self) {
+        let _ = LOGGING.try_with(|l| {
+            let mut l = l.borrow_mut();
+            if let Some(i) = l.iter().rposition(|&k| k == self.0) {
+                l.remove(i);
+            }
+        });
+    }
 }
 
 #[derive(Default)]
@@ -26,7 +64,8 @@ struct Settings {
     onnxruntime_path: Option<String>,
     model_path: Option<String>,
     oidn_path: Option<String>,
-    committed: Option<Context>,
+    /// The pool, and the process that started it (`std::process::id`).
+    committed: Option<(Context, u32)>,
 }
 
 impl gdr_context {
@@ -34,10 +73,14 @@ impl gdr_context {
         self.settings.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// The committed thread pool, or an error telling the caller to commit first.
-    pub(crate) fn pool(&self) -> CResult<Context> {
+    /// The committed thread pool and the process that committed it, or an error telling the
+    /// caller to commit first.
+    pub(crate) fn pool(&self) -> CResult<(Context, u32)> {
         match &self.settings().committed {
-            Some(c) => Ok(c.clone()),
+            Some((c, pid)) => {
+                same_process(*pid)?;
+                Ok((c.clone(), *pid))
+            }
             None => err(
                 GDR_ERROR_INVALID_OPERATION,
                 "the context is not committed: call gdr_context_commit first",
@@ -51,18 +94,69 @@ impl gdr_context {
         (s.onnxruntime_path.clone(), s.model_path.clone())
     }
 
-    /// Sends `message` to the log callback if `level` is enabled.
+    /// Sends `message` to the log callback if `level` is enabled, one call at a time.
+    ///
+    /// A message logged from inside this context's own callback on the same thread (the
+    /// callback called a function that logs) is dropped: delivering it would nest a call in
+    /// the running one, and waiting for the running one would never end.
     pub(crate) fn log(&self, level: gdr_log_level, message: &str) {
-        if level as u32 > self.log_level.load(Ordering::Relaxed) {
+        if level as u32 > self.log_level.load(Ordering::Relaxed) || logging(self) {
             return;
         }
-        let callback = *self.log.lock().unwrap_or_else(|p| p.into_inner());
-        if let Some((f, user)) = callback {
+        let slot = self.log.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some((f, user)) = *slot {
             let text = CString::new(message.replace('\0', " ")).unwrap_or_default();
-            // SAFETY: the caller registered `f` with `user` for exactly this use.
+            let _inside = InCallback::enter(self);
+            // SAFETY: the caller registered `f` with `user` for exactly this use; the lock
+            // held in `slot` keeps calls from overlapping.
             unsafe { f(user.0, level as u32, text.as_ptr()) };
         }
     }
+
+    /// Logs a failed call: at `GDR_LOG_ERROR`, or `GDR_LOG_INFO` for a cancellation (the
+    /// answer to the caller's request, not a failure).
+    pub(crate) fn log_failure(&self, function: &str, e: &CapiError) {
+        let level = if e.code == GDR_ERROR_CANCELLED {
+            gdr_log_level::GDR_LOG_INFO
+        } else {
+            gdr_log_level::GDR_LOG_ERROR
+        };
+        self.log(level, &format!("{function}: {}", e.message));
+    }
+}
+
+/// Fails in a process forked from the one that committed the context: the pool's threads
+/// were not copied into the child, so work handed to them would wait forever.
+pub(crate) fn same_process(committed_by: u32) -> CResult {
+    let now = std::process::id();
+    if now == committed_by {
+        return Ok(());
+    }
+    err(
+        GDR_ERROR_INVALID_OPERATION,
+        format!(
+            "the context was committed in process {committed_by} and this is process {now} \
+             (forked after the commit): its threads do not exist here; create and commit a new \
+             context in this process (objects from before the fork may only be released)"
+        ),
+    )
+}
+
+/// Runs the body of an exported function on a context: holds a reference for the call (a
+/// callback may release the caller's), catches panics, and logs failures on the context.
+unsafe fn with_context(
+    function: &'static str,
+    ctx: *const gdr_context,
+    body: impl FnOnce(&gdr_context) -> CResult,
+) -> gdr_error {
+    guard(function, || {
+        let ctx = context_arc(ctx)?;
+        let result = catch(|| body(&ctx));
+        if let Err(e) = &result {
+            ctx.log_failure(function, e);
+        }
+        result
+    })
 }
 
 /// Borrows a handle argument.
@@ -84,6 +178,7 @@ pub unsafe extern "C" fn gdr_context_new(out: *mut *mut gdr_context) -> gdr_erro
     guard("gdr_context_new", || {
         let out = out_ptr(out, "out")?;
         *out = std::ptr::null_mut();
+        install_panic_hook();
         let ctx = gdr_context {
             settings: Mutex::new(Settings::default()),
             log_level: AtomicU32::new(gdr_log_level::GDR_LOG_WARNING as u32),
@@ -126,8 +221,7 @@ pub unsafe extern "C" fn gdr_context_set_int(
     name: *const c_char,
     value: i32,
 ) -> gdr_error {
-    guard("gdr_context_set_int", || {
-        let ctx = context_ref(ctx)?;
+    with_context("gdr_context_set_int", ctx, |ctx| {
         let name = c_str(name, "name")?;
         match name {
             "threads" => {
@@ -166,15 +260,14 @@ pub unsafe extern "C" fn gdr_context_get_int(
     name: *const c_char,
     value: *mut i32,
 ) -> gdr_error {
-    guard("gdr_context_get_int", || {
-        let ctx = context_ref(ctx)?;
+    with_context("gdr_context_get_int", ctx, |ctx| {
         let name = c_str(name, "name")?;
         let out = out_ptr(value, "value")?;
         *out = match name {
             "threads" => {
                 let s = ctx.settings();
                 let n = match &s.committed {
-                    Some(c) => c.threads(),
+                    Some((c, _)) => c.threads(),
                     None => s.threads.unwrap_or(0),
                 };
                 i32::try_from(n).unwrap_or(i32::MAX)
@@ -195,8 +288,7 @@ pub unsafe extern "C" fn gdr_context_set_string(
     name: *const c_char,
     value: *const c_char,
 ) -> gdr_error {
-    guard("gdr_context_set_string", || {
-        let ctx = context_ref(ctx)?;
+    with_context("gdr_context_set_string", ctx, |ctx| {
         let name = c_str(name, "name")?;
         let value = if value.is_null() {
             None
@@ -224,14 +316,25 @@ pub unsafe extern "C" fn gdr_context_set_string(
 }
 
 /// Set (or with NULL remove) the log callback; it may be called from any thread, never concurrently for one context.
+///
+/// Calls for one context are serialised (a lock is held while the callback runs). Replacing or
+/// removing the callback waits for a running call to return: afterwards the old callback is
+/// never called again. The callback may call any gdr_ function except this one on the same
+/// context (`GDR_ERROR_INVALID_OPERATION`); what those calls would log on the same context is
+/// dropped, not delivered. It must not wait for a thread that is replacing the callback.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_context_set_log_callback(
     ctx: *mut gdr_context,
     callback: gdr_log_fn,
     user: *mut std::ffi::c_void,
 ) -> gdr_error {
-    guard("gdr_context_set_log_callback", || {
-        let ctx = context_ref(ctx)?;
+    with_context("gdr_context_set_log_callback", ctx, |ctx| {
+        if logging(ctx) {
+            return err(
+                GDR_ERROR_INVALID_OPERATION,
+                "the log callback cannot be replaced from inside itself (it would wait for its own return)",
+            );
+        }
         *ctx.log.lock().unwrap_or_else(|p| p.into_inner()) = callback.map(|f| (f, UserPtr(user)));
         Ok(())
     })
@@ -242,8 +345,7 @@ pub unsafe extern "C" fn gdr_context_set_log_callback(
 /// Committing twice is an error (`GDR_ERROR_INVALID_OPERATION`); so is setting `threads` or a path afterwards.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_context_commit(ctx: *mut gdr_context) -> gdr_error {
-    guard("gdr_context_commit", || {
-        let ctx = context_ref(ctx)?;
+    with_context("gdr_context_commit", ctx, |ctx| {
         let mut s = ctx.settings();
         frozen(&s, "the context")?;
         let mut options = ContextOptions::with_threads(s.threads);
@@ -252,7 +354,7 @@ pub unsafe extern "C" fn gdr_context_commit(ctx: *mut gdr_context) -> gdr_error 
         }
         let pool = Context::new(options)?;
         let threads = pool.threads();
-        s.committed = Some(pool);
+        s.committed = Some((pool, std::process::id()));
         drop(s);
         ctx.log(
             gdr_log_level::GDR_LOG_DEBUG,

@@ -5,12 +5,14 @@ use std::ffi::{c_char, c_void, CString};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
 
-use super::context::{context_arc, gdr_context};
+use super::context::{context_arc, gdr_context, same_process};
 use super::gdr_error::*;
 use super::gdr_log_level::*;
 use super::param::{lookup, Setter};
 use super::view::{Layout, View};
-use super::{c_str, err, gdr_error, gdr_progress_fn, guard, out_ptr, CResult, CapiError, UserPtr};
+use super::{
+    c_str, catch, err, gdr_error, gdr_progress_fn, guard, out_ptr, CResult, CapiError, UserPtr,
+};
 use crate::context::Context;
 use crate::frame::{FrameBuilder, Layer};
 use crate::image::Image;
@@ -22,6 +24,8 @@ use crate::validate::Policy;
 pub struct gdr_filter {
     context: Arc<gdr_context>,
     pool: Context,
+    /// The process that committed the context (`std::process::id`).
+    pid: u32,
     cancel: AtomicBool,
     state: Mutex<State>,
 }
@@ -45,6 +49,9 @@ struct State {
 /// no panic crosses the ABI.
 #[cfg(feature = "testing")]
 const TEST_PANIC: &str = "internal_test_panic";
+/// Like `internal_test_panic`, on one of the context's pool threads (feature `testing` only).
+#[cfg(feature = "testing")]
+const TEST_PANIC_IN_POOL: &str = "internal_test_panic_in_pool";
 
 /// Filter `"guide"`: RDFC's first pass, as the authors' release (the default).
 pub const GDR_FRGR_GUIDE_RDFC: i32 = 0;
@@ -170,22 +177,23 @@ impl State {
     }
 }
 
-/// Borrows a filter handle and locks it for one call; failures are logged on its context.
+/// Takes a reference to a filter handle for one call (a callback may release the caller's:
+/// the filter lives until the call returns) and locks it; failures are logged on its context.
 unsafe fn with_filter(
     function: &'static str,
     filter: *const gdr_filter,
     body: impl FnOnce(&gdr_filter, &mut State) -> CResult,
 ) -> gdr_error {
     guard(function, || {
-        let Some(f) = filter.as_ref() else {
+        if filter.is_null() {
             return err(GDR_ERROR_NULL_POINTER, "filter is NULL");
-        };
-        let mut state = lock(f)?;
-        let result = body(f, &mut state);
-        drop(state);
+        }
+        Arc::increment_strong_count(filter);
+        let f = Arc::from_raw(filter);
+        // A panic unwinds through the lock guard, which poisons the state (see `lock`).
+        let result = catch(|| body(&f, &mut *lock(&f)?));
         if let Err(e) = &result {
-            f.context
-                .log(GDR_LOG_ERROR, &format!("{function}: {}", e.message));
+            f.context.log_failure(function, e);
         }
         result
     })
@@ -221,8 +229,18 @@ pub unsafe extern "C" fn gdr_filter_new(
         let out = out_ptr(out, "out")?;
         *out = std::ptr::null_mut();
         let context = context_arc(ctx)?;
-        let method: Method = c_str(method, "method")?.parse()?;
-        let pool = context.pool()?;
+        let made = catch(|| {
+            let method: Method = c_str(method, "method")?.parse()?;
+            let (pool, pid) = context.pool()?;
+            Ok((method, pool, pid))
+        });
+        let (method, pool, pid) = match made {
+            Ok(m) => m,
+            Err(e) => {
+                context.log_failure("gdr_filter_new", &e);
+                return Err(e);
+            }
+        };
         let mut config = MethodConfig::default_for(method);
         if let Some(c) = config.gradnet_mut() {
             let (runtime, model) = context.gradnet_paths();
@@ -232,6 +250,7 @@ pub unsafe extern "C" fn gdr_filter_new(
         let filter = gdr_filter {
             context,
             pool,
+            pid,
             cancel: AtomicBool::new(false),
             state: Mutex::new(State {
                 config,
@@ -332,8 +351,18 @@ pub unsafe extern "C" fn gdr_filter_set_bool(
     name: *const c_char,
     value: bool,
 ) -> gdr_error {
-    with_filter("gdr_filter_set_bool", filter, |_, st| {
-        st.set(c_str(name, "name")?, Setter::Bool, Value::Bool(value))
+    with_filter("gdr_filter_set_bool", filter, |_f, st| {
+        let name = c_str(name, "name")?;
+        #[cfg(feature = "testing")]
+        if name == TEST_PANIC_IN_POOL {
+            _f.pool.install(|| {
+                if value {
+                    panic!("deliberate panic ({name})");
+                }
+            });
+            return Ok(());
+        }
+        st.set(name, Setter::Bool, Value::Bool(value))
     })
 }
 
@@ -498,8 +527,10 @@ pub unsafe extern "C" fn gdr_filter_unset_image(
 
 /// Set (or with NULL remove) the progress callback; it runs on a library thread during execute, never concurrently with itself.
 ///
-/// It receives the fraction done in [0, 1] and returns false to cancel. It must not call
-/// functions on the same filter (they fail with `GDR_ERROR_INVALID_OPERATION`) and must not throw.
+/// It receives the fraction done in [0, 1] and returns false to cancel. It must not throw.
+/// Calls on the same filter from it fail with `GDR_ERROR_INVALID_OPERATION`, except
+/// `gdr_filter_cancel`, `gdr_filter_retain` and `gdr_filter_release` (releasing the last
+/// reference is safe: execute holds its own until it returns).
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_set_progress_callback(
     filter: *mut gdr_filter,
@@ -521,6 +552,7 @@ pub unsafe extern "C" fn gdr_filter_set_progress_callback(
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_commit(filter: *mut gdr_filter) -> gdr_error {
     with_filter("gdr_filter_commit", filter, |f, st| {
+        same_process(f.pid)?;
         let note = st.commit(&f.pool)?;
         if !note.is_empty() {
             f.context.log(GDR_LOG_DEBUG, &note);
@@ -537,6 +569,7 @@ pub unsafe extern "C" fn gdr_filter_commit(filter: *mut gdr_filter) -> gdr_error
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_execute(filter: *mut gdr_filter) -> gdr_error {
     with_filter("gdr_filter_execute", filter, |f, st| {
+        same_process(f.pid)?;
         if st.dirty || st.plan.is_none() {
             return err(
                 GDR_ERROR_INVALID_OPERATION,

@@ -21,10 +21,10 @@ mod frame;
 mod param;
 mod view;
 
-use std::cell::RefCell;
+use std::cell::{Cell, RefCell};
 use std::ffi::{c_char, c_void, CStr, CString};
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::OnceLock;
+use std::sync::{Once, OnceLock};
 
 pub use context::*;
 pub use filter::*;
@@ -109,11 +109,11 @@ use gdr_error::*;
 pub enum gdr_log_level {
     /// Nothing is logged.
     GDR_LOG_NONE = 0,
-    /// Failed calls.
+    /// Failed calls (a cancellation is logged at `GDR_LOG_INFO`: it is not a failure).
     GDR_LOG_ERROR = 1,
     /// Replaced input values and other suspicious input (the default level).
     GDR_LOG_WARNING = 2,
-    /// One report per execution: method, stage times, notes.
+    /// One report per execution: method, stage times, notes; cancelled executions.
     GDR_LOG_INFO = 3,
     /// Planning decisions.
     GDR_LOG_DEBUG = 4,
@@ -184,16 +184,82 @@ fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
     }
 }
 
+thread_local! {
+    /// How many exported functions this thread is inside (callbacks nest them).
+    static IN_GUARD: Cell<u32> = const { Cell::new(0) };
+    /// Where the last panic caught on this thread happened, from the panic hook.
+    static PANIC_AT: RefCell<Option<String>> = const { RefCell::new(None) };
+}
+
+/// True on a thread inside an exported function, or one of a context's pool threads (named
+/// `gdrecon-N` by `Context::new`), whose panics reach an exported function through rayon.
+fn in_library() -> bool {
+    IN_GUARD.try_with(|d| d.get() > 0).unwrap_or(false)
+        || std::thread::current()
+            .name()
+            .is_some_and(|n| n.starts_with("gdrecon-"))
+}
+
+/// Installs, once per process (at the first `gdr_context_new`), a panic hook that keeps the
+/// library silent: a panic on a library thread is not printed (the caught panic becomes
+/// `GDR_ERROR_UNKNOWN`, its message goes to `gdr_get_error` and the context's log callback);
+/// any other panic goes to the hook that was installed before, so a host's own hook still runs.
+pub(crate) fn install_panic_hook() {
+    static ONCE: Once = Once::new();
+    ONCE.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if in_library() {
+                if let Some(at) = info.location() {
+                    let at = format!("{}:{}", at.file(), at.line());
+                    let _ = PANIC_AT.try_with(|p| *p.borrow_mut() = Some(at));
+                }
+                return;
+            }
+            previous(info)
+        }));
+    });
+}
+
+/// Runs `body`, turning a panic into `GDR_ERROR_UNKNOWN` with the panic's message (and
+/// location, when the hook saw it on this thread).
+pub(crate) fn catch<T>(body: impl FnOnce() -> CResult<T>) -> CResult<T> {
+    catch_unwind(AssertUnwindSafe(body)).unwrap_or_else(|payload| {
+        let at = PANIC_AT
+            .try_with(|p| p.borrow_mut().take())
+            .ok()
+            .flatten()
+            .map_or(String::new(), |at| format!(" at {at}"));
+        err(
+            GDR_ERROR_UNKNOWN,
+            format!("internal error (panic{at}): {}", panic_message(&*payload)),
+        )
+    })
+}
+
+/// Counts this thread inside an exported function while alive.
+struct Inside;
+
+impl Inside {
+    fn enter() -> Inside {
+        let _ = IN_GUARD.try_with(|d| d.set(d.get() + 1));
+        Inside
+    }
+}
+
+impl Drop for Inside {
+    fn drop(&mut self) {
+        let _ = IN_GUARD.try_with(|d| d.set(d.get().saturating_sub(1)));
+    }
+}
+
 /// Runs the body of an exported function: catches panics, records failures for
 /// `gdr_get_error` (prefixed with the function's name) and returns the status.
 pub(crate) fn guard(function: &'static str, body: impl FnOnce() -> CResult) -> gdr_error {
-    let (code, message) = match catch_unwind(AssertUnwindSafe(body)) {
-        Ok(Ok(())) => return GDR_ERROR_NONE,
-        Ok(Err(e)) => (e.code, e.message),
-        Err(payload) => (
-            GDR_ERROR_UNKNOWN,
-            format!("internal error (panic): {}", panic_message(&*payload)),
-        ),
+    let _inside = Inside::enter();
+    let (code, message) = match catch(body) {
+        Ok(()) => return GDR_ERROR_NONE,
+        Err(e) => (e.code, e.message),
     };
     // Recording must not unwind either (it only allocates).
     let _ = catch_unwind(AssertUnwindSafe(|| {
