@@ -383,7 +383,8 @@ gdr_error gdr_filter_set_progress_callback(gdr_filter *filter, gdr_progress_fn c
 
 // Validate the images and parameters and plan the method for the image size (expensive the first time; cheap when only pointers changed).
 //
-// Errors: a required image missing (`GDR_ERROR_INVALID_OPERATION`), sizes that disagree
+// Errors: a required image missing, or method `"frgr"` without `"spp"` (its weights depend on
+// the sample count) (`GDR_ERROR_INVALID_OPERATION`), sizes that disagree
 // (`GDR_ERROR_INVALID_IMAGE`), an output partially overlapping an input (`GDR_ERROR_OVERLAP`;
 // the output may be exactly an input view, i.e. in place), a parameter out of range
 // (`GDR_ERROR_INVALID_ARGUMENT`).

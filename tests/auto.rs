@@ -74,3 +74,45 @@ fn unknown_spp_runs_gradnet_or_falls_back_to_l1_with_the_reason() {
     let why = note(&report);
     assert!(why.contains("GradNet cannot run"), "{why}");
 }
+
+/// `fallback` false: a frame whose preferred path cannot run here is an error naming why, not
+/// another method's image (one frame, one image on every machine).
+#[test]
+fn without_fallback_a_missing_path_is_an_error() {
+    let unknown_spp = sample()
+        .into_builder()
+        .spp(None)
+        .build(Policy::Replace)
+        .unwrap();
+    let mut config = no_prior();
+    config.gradnet.model = Some("/nonexistent/gradnet.onnx".into());
+    config.fallback = false;
+    let ctx = Context::new(ContextOptions::with_threads(Some(2))).unwrap();
+    let (w, h) = unknown_spp.size();
+    let mut plan = Plan::new(&ctx, &MethodConfig::Auto(config.clone()), w, h).unwrap();
+    let e = plan.execute(&unknown_spp, &Progress::none()).unwrap_err();
+    assert!(
+        e.to_string().contains("GradNet cannot run here")
+            && e.to_string().contains("fallback is false"),
+        "{e}"
+    );
+    // The prior path, with OIDN named at a path that does not exist and no prior layer.
+    let ctx = Context::new(
+        ContextOptions::with_threads(Some(2)).with_oidn("/nonexistent/libOpenImageDenoise.so.2"),
+    )
+    .unwrap();
+    let mut config = AutoConfig::default();
+    config.fallback = false;
+    let frame = sample();
+    let mut plan = Plan::new(&ctx, &MethodConfig::Auto(config.clone()), w, h).unwrap();
+    let e = plan.execute(&frame, &Progress::none()).unwrap_err();
+    assert!(
+        e.to_string().contains("the prior path cannot run here"),
+        "{e}"
+    );
+    // The same frames with fallback (the default) run, and say what they fell back to.
+    config.fallback = true;
+    let mut plan = Plan::new(&ctx, &MethodConfig::Auto(config), w, h).unwrap();
+    let (_, report) = plan.execute(&frame, &Progress::none()).unwrap();
+    assert_eq!(report.method, "auto -> frgr");
+}

@@ -197,6 +197,41 @@ fn parameters_reach_the_method() {
     assert!(same_bits(&out, &expected));
 }
 
+/// `frgr` without `spp` is refused at commit, in the C API's words, not at execute.
+#[test]
+fn frgr_without_spp_fails_at_commit() {
+    let frame = frame();
+    let bufs = packed_inputs(&frame);
+    let ctx = context();
+    let f = filter(ctx, "frgr");
+    let mut out = vec![0f32; W * H * 3];
+    unsafe {
+        set_packed(f, &bufs);
+        ok(gdr_filter_set_image(
+            f,
+            c"output".as_ptr(),
+            out.as_mut_ptr(),
+            W,
+            H,
+            3,
+            0,
+            0,
+        ));
+        let msg = fails(gdr_filter_commit(f), GDR_ERROR_INVALID_OPERATION);
+        assert!(
+            msg.contains("\"spp\"")
+                && msg.contains("gdr_filter_set_float")
+                && !msg.contains("--spp"),
+            "{msg}"
+        );
+        ok(gdr_filter_set_float(f, c"spp".as_ptr(), 4.0));
+        ok(gdr_filter_commit(f));
+        ok(gdr_filter_execute(f));
+        ok(gdr_filter_release(&mut { f }));
+        ok(gdr_context_release(&mut { ctx }));
+    }
+}
+
 #[test]
 fn filter_parameters_reach_the_method() {
     // The ablation settings through the C API equal the Rust API's, and a bad guide is named.

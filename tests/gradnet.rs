@@ -158,13 +158,29 @@ fn plans_reuse_the_context_session_and_report_what_ran() {
         second.as_slice(),
         "same session, same result"
     );
+    // Albedo and normal without depth: the report names what is missing.
+    let no_depth = frame
+        .clone()
+        .into_builder()
+        .without(Layer::Depth)
+        .build(Policy::Replace)
+        .unwrap();
+    let (_, report) = a.execute(&no_depth, &Progress::none()).unwrap();
+    assert!(
+        report
+            .skipped
+            .iter()
+            .any(|s| s.contains("lacks depth (") && s.contains("no-feature model")),
+        "{:?}",
+        report.skipped
+    );
     let bare = without_features(frame);
     let (_, report) = a.execute(&bare, &Progress::none()).unwrap();
     assert!(
         report
             .skipped
             .iter()
-            .any(|s| s.contains("no-feature model")),
+            .any(|s| s.contains("lacks albedo, normal, depth")),
         "{:?}",
         report.skipped
     );

@@ -162,6 +162,14 @@ impl State {
                 format!("{w} x {h} x 3 floats cannot be allocated"),
             );
         }
+        if self.config.method() == Method::Frgr && self.spp <= 0.0 {
+            // Its weights depend on the sample count: refused here, not at execute.
+            return err(
+                GDR_ERROR_INVALID_OPERATION,
+                "method 'frgr' needs the samples per pixel: set \"spp\" \
+                 (gdr_filter_set_float(filter, \"spp\", N)) before gdr_filter_commit",
+            );
+        }
         let mut note = String::new();
         if self.planned.as_ref() != Some(&(self.config.clone(), w, h)) {
             self.plan = None;
@@ -545,7 +553,8 @@ pub unsafe extern "C" fn gdr_filter_set_progress_callback(
 
 /// Validate the images and parameters and plan the method for the image size (expensive the first time; cheap when only pointers changed).
 ///
-/// Errors: a required image missing (`GDR_ERROR_INVALID_OPERATION`), sizes that disagree
+/// Errors: a required image missing, or method `"frgr"` without `"spp"` (its weights depend on
+/// the sample count) (`GDR_ERROR_INVALID_OPERATION`), sizes that disagree
 /// (`GDR_ERROR_INVALID_IMAGE`), an output partially overlapping an input (`GDR_ERROR_OVERLAP`;
 /// the output may be exactly an input view, i.e. in place), a parameter out of range
 /// (`GDR_ERROR_INVALID_ARGUMENT`).

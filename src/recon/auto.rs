@@ -16,14 +16,17 @@
 //!    robust of the remaining methods; the reason GradNet could not run is part of the note.
 //!
 //! The chosen method is planned on the first frame that needs it and kept: a sequence of
-//! frames of one kind plans once.
+//! frames of one kind plans once. The report names the method that ran (`auto -> l1 (prior)`)
+//! and why. A render farm that must give every node the same image sets `fallback` to false:
+//! a frame whose preferred path cannot run on this machine (OIDN or ONNX Runtime missing) is
+//! then an error instead of another method's image.
 
 use super::param::{Param, ParamInfo, Params, Settings, Value};
 use super::{
     FrgrConfig, GradNetConfig, Method, MethodConfig, PoissonL1Config, Reconstructor, Register,
 };
 use crate::context::Context;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::frame::Frame;
 use crate::image::Image;
 use crate::progress::Progress;
@@ -43,28 +46,45 @@ pub struct AutoConfig {
     pub prior: PoissonL1Config,
     /// Take the prior path when a prior is given or Open Image Denoise loads (rule 0).
     pub use_prior: bool,
+    /// Fall back to the next rule when the preferred path cannot run here (the default);
+    /// false: fail instead, so that one frame gives one image on every machine.
+    pub fallback: bool,
 }
 
 /// `auto`'s own switch, declared in a table like every parameter.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct Rules {
     use_prior: bool,
+    fallback: bool,
 }
 
 impl Default for Rules {
     fn default() -> Self {
-        Rules { use_prior: true }
+        Rules {
+            use_prior: true,
+            fallback: true,
+        }
     }
 }
 
 impl Params for Rules {
-    const TABLE: &'static [Param<Self>] = &[Param::bool(
-        "use_prior",
-        "Take the prior path (l1 on the prior) when the frame has a 'prior' layer or Open Image \
-         Denoise loads; false: never load OIDN, pick among frgr, gradnet and l1",
-        |c| c.use_prior,
-        |c, v| c.use_prior = v,
-    )];
+    const TABLE: &'static [Param<Self>] = &[
+        Param::bool(
+            "use_prior",
+            "Take the prior path (l1 on the prior) when the frame has a 'prior' layer or Open \
+             Image Denoise loads; false: never load OIDN, pick among frgr, gradnet and l1",
+            |c| c.use_prior,
+            |c, v| c.use_prior = v,
+        ),
+        Param::bool(
+            "fallback",
+            "When the preferred path cannot run here (Open Image Denoise or ONNX Runtime \
+             missing), take the next rule's method; false: fail instead, so one frame gives \
+             one image on every machine",
+            |c| c.fallback,
+            |c, v| c.fallback = v,
+        ),
+    ];
 }
 
 impl Default for AutoConfig {
@@ -75,6 +95,7 @@ impl Default for AutoConfig {
             l1: PoissonL1Config::default(),
             prior: PoissonL1Config::prior(),
             use_prior: Rules::default().use_prior,
+            fallback: Rules::default().fallback,
         }
     }
 }
@@ -135,9 +156,10 @@ impl Settings for AutoConfig {
     }
 
     fn read(&self, name: &str) -> Option<Value> {
-        if name == "use_prior" {
+        if !name.contains('.') {
             return Rules {
                 use_prior: self.use_prior,
+                fallback: self.fallback,
             }
             .read(name);
         }
@@ -151,10 +173,13 @@ impl Settings for AutoConfig {
     }
 
     fn write(&mut self, name: &str, value: Value) -> bool {
-        if name == "use_prior" {
-            let mut rules = Rules::default();
+        if !name.contains('.') {
+            let mut rules = Rules {
+                use_prior: self.use_prior,
+                fallback: self.fallback,
+            };
             let written = rules.write(name, value);
-            self.use_prior = rules.use_prior;
+            (self.use_prior, self.fallback) = (rules.use_prior, rules.fallback);
             return written;
         }
         match name.split_once('.') {
@@ -290,6 +315,11 @@ impl Reconstructor for Auto {
             }
             Err(why) => why,
         };
+        if self.config.use_prior && !self.config.fallback {
+            return Err(Error::Unsupported(format!(
+                "auto: the prior path cannot run here ({no_prior}), and fallback is false"
+            )));
+        }
         let (mut choice, mut reason) = self.config.choose(frame);
         let mut path = if choice.method() == Method::GradNet {
             "gradnet"
@@ -304,6 +334,12 @@ impl Reconstructor for Auto {
             }
             if let Some(why) = &self.gradnet_error {
                 let first_line = why.lines().next().unwrap_or_default();
+                if !self.config.fallback {
+                    return Err(Error::Unsupported(format!(
+                        "auto: spp unknown and GradNet cannot run here ({first_line}), and \
+                         fallback is false"
+                    )));
+                }
                 reason = format!("spp unknown and GradNet cannot run ({first_line}): l1");
                 choice = MethodConfig::PoissonL1(self.config.l1);
                 path = "l1";

@@ -485,8 +485,8 @@ impl Reconstructor for Frgr {
     ) -> Result<()> {
         let spp = frame.spp().ok_or_else(|| {
             Error::input(
-                "frgr needs the samples per pixel: the frame has no spp \
-                 (set it, e.g. --spp N)",
+                "frgr needs the samples per pixel, and the frame has none (the bundle's spp \
+                 attribute, FrameBuilder::spp, C \"spp\" or the CLI's --spp)",
             )
         })?;
         // The filter squares differences and weights them by squared inverses, in f32: a frame

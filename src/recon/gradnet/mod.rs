@@ -409,11 +409,25 @@ mod enabled {
                 )));
             }
             if !use_features {
-                report.skip(if norm.is_none() && self.config.use_features {
-                    "feature branch: the frame has no albedo/normal/depth, ran the no-feature model"
+                if norm.is_none() && self.config.use_features {
+                    // Name what is missing: a frame with albedo and normal but no depth
+                    // otherwise looked like one with no features at all.
+                    let missing: Vec<&str> = [
+                        ("albedo", frame.albedo().is_none()),
+                        ("normal", frame.normal().is_none()),
+                        ("depth", frame.depth().is_none()),
+                    ]
+                    .into_iter()
+                    .filter_map(|(name, absent)| absent.then_some(name))
+                    .collect();
+                    report.skip(format!(
+                        "feature branch: the frame lacks {} (the feature model needs albedo, \
+                         normal and depth): ran the no-feature model",
+                        missing.join(", ")
+                    ));
                 } else {
-                    "feature branch: the model has none"
-                });
+                    report.skip("feature branch: the model has none");
+                }
             }
             report.note(format!(
                 "GradNet: model {}, ONNX Runtime {}, {} tile(s) of {} x {}",
