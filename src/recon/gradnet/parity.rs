@@ -13,7 +13,6 @@ use super::prep::{self, FeatureNorm, FrameMap, Window};
 use crate::frame::Frame;
 use crate::image::Image;
 use crate::io::exr::read_bundle;
-use crate::progress::Progress;
 use crate::validate::Policy;
 
 fn fixture(name: &str) -> PathBuf {
@@ -97,6 +96,7 @@ fn network_matches_torch() {
     use super::model::{embedded, ModelVariant};
     use super::net::Net;
     use super::runtime::runtime;
+    use crate::progress::Progress;
 
     let rt = runtime(None).expect("ONNX Runtime (run `bash onnx/setup.sh`)");
     let mut net = Net::new(&rt.env, &embedded(ModelVariant::Full).unwrap(), 2).unwrap();

@@ -241,7 +241,7 @@ impl Prior {
     }
 
     #[cfg(not(feature = "oidn"))]
-    fn compute(&mut self, _frame: &Frame, _report: &mut Report) -> Result<&Image> {
+    fn compute(&mut self, _frame: &Frame, _report: &mut Report, _: &Progress) -> Result<&Image> {
         let _ = (&self.context, self.quality, self.width, self.height);
         Err(crate::Error::Unsupported(
             "this method needs a prior: give the frame a 'prior' layer, or build gdrecon with \
