@@ -541,6 +541,7 @@ mod enabled {
                     ));
                 }
             }
+            progress.check()?;
             if self.config.bias_correction {
                 report.time("bias correction", || bias::correct(out, frame.color()));
             } else {
