@@ -157,3 +157,40 @@ fn try_zeros_fails_instead_of_aborting() {
         gdrecon::Image::zeros(3, 4, 2)
     );
 }
+
+/// The child of [`address_space_limit_refuses_instead_of_aborting`]: run by it under
+/// `ulimit -v`, it plans L1 for 8192 x 8192 (about 7.5 GiB).
+#[test]
+#[ignore = "run by address_space_limit_refuses_instead_of_aborting under ulimit -v"]
+fn l1_8192_under_the_limit() {
+    if std::env::var_os("GDRECON_MEMORY_CHILD").is_none() {
+        return;
+    }
+    let context = Context::new(ContextOptions::with_threads(Some(2))).unwrap();
+    let config = MethodConfig::default_for(Method::PoissonL1);
+    let err = Plan::new(&context, &config, 8192, 8192).unwrap_err();
+    assert!(matches!(err, Error::OutOfMemory(_)), "{err:?}");
+    println!("REFUSED: {err}");
+}
+
+#[cfg(target_os = "linux")]
+#[test]
+fn address_space_limit_refuses_instead_of_aborting() {
+    let _serial = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
+    let exe = std::env::current_exe().unwrap();
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg("ulimit -v 3000000; exec \"$0\" l1_8192_under_the_limit --exact --ignored --nocapture --test-threads 1")
+        .arg(&exe)
+        .env("GDRECON_MEMORY_CHILD", "1")
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success()
+            && stdout.contains("REFUSED: out of memory: method l1 for 8192 x 8192"),
+        "status {:?}\n{stdout}\n{stderr}",
+        out.status
+    );
+}
