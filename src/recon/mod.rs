@@ -542,7 +542,10 @@ fn address_space_left() -> Option<u64> {
     let pages: u64 = statm.split_whitespace().next()?.parse().ok()?;
     // SAFETY: sysconf has no preconditions.
     let page = u64::try_from(unsafe { libc::sysconf(libc::_SC_PAGESIZE) }).ok()?;
-    Some((limit.rlim_cur as u64).saturating_sub(pages.saturating_mul(page)))
+    // rlim_t is 32 bits on 32-bit targets.
+    #[allow(clippy::unnecessary_cast)]
+    let limit = limit.rlim_cur as u64;
+    Some(limit.saturating_sub(pages.saturating_mul(page)))
 }
 
 #[cfg(not(target_os = "linux"))]
