@@ -214,8 +214,9 @@ impl Register for AutoConfig {
         Some(&mut self.gradnet)
     }
 
-    /// The largest of the paths it may plan (a frame's choice is made at execute, and plans
-    /// made for earlier frames are kept: their sum, as a frame sequence may take each path).
+    /// The largest of the paths it may plan (a frame's choice is made at execute). Plans made
+    /// for earlier frames are kept, so a sequence whose frames take different paths can hold
+    /// more than this: the estimate covers one path, as one frame takes.
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
         [
             MethodConfig::Frgr(self.frgr).memory_estimate(width, height),
