@@ -317,7 +317,8 @@ impl PoissonL1 {
             cfg: config,
             precond: config
                 .preconditioned
-                .then(|| DctPoisson::new(dims, config.alpha)),
+                .then(|| DctPoisson::new(dims, config.alpha))
+                .transpose()?,
             x: v3()?,
             r: v3()?,
             z: v3()?,

@@ -132,7 +132,7 @@ impl PoissonL2 {
         Ok(PoissonL2 {
             dims,
             alpha: config.alpha,
-            solver: DctPoisson::new(dims, config.alpha),
+            solver: DctPoisson::new(dims, config.alpha)?,
             rhs: try_vec(3 * dims.len(), 0.0)?,
         })
     }
