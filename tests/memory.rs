@@ -195,3 +195,42 @@ fn address_space_limit_refuses_instead_of_aborting() {
         out.status
     );
 }
+
+/// The table next to the coefficients: peak heap against the estimate at two frame sizes
+/// (`cargo test --release --test memory -- --ignored --nocapture peak_table`).
+#[test]
+#[ignore = "prints the measurements; slower"]
+fn peak_table() {
+    let _serial = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
+    let context = Context::new(ContextOptions::with_threads(Some(2))).unwrap();
+    for (w, h) in [(640, 360), (1280, 720)] {
+        let frame = gdrecon::synth::synthetic_frame(w, h, 8.0, 7);
+        for (method, preset, params) in [
+            (Method::PoissonL2, None, ""),
+            (Method::PoissonL1, None, ""),
+            (Method::PoissonL1, Some("published"), ""),
+            (Method::Frgr, None, ""),
+            (Method::Frgr, Some("reference"), ""),
+            (Method::Frgr, None, "guide=l1"),
+            (Method::Frgr, None, "levels=1"),
+        ] {
+            let mut config = match preset {
+                Some(p) => MethodConfig::preset(method, p).unwrap(),
+                None => MethodConfig::default_for(method),
+            };
+            if !params.is_empty() {
+                config.set_assignment(params).unwrap();
+            }
+            let estimate = config.memory_estimate(w, h);
+            let peak = measured_peak(&config, &frame, &context);
+            println!(
+                "| {method} {} {params} | {w} x {h} | {:.1} MiB | {:.1} B/px | {:.1} MiB | {:.2}x |",
+                preset.unwrap_or(""),
+                peak as f64 / 1048576.0,
+                peak as f64 / (w * h) as f64,
+                estimate as f64 / 1048576.0,
+                estimate as f64 / peak as f64
+            );
+        }
+    }
+}

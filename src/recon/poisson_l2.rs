@@ -105,7 +105,8 @@ impl Register for PoissonL2Config {
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
         // Eigenvalues (1 plane), right-hand side and transposed planes (3 + 3), the output
         // (3): 10 f32 planes, 40 B a pixel (the DCT plans and per-thread scratch are rows);
-        // measured 40.4 B a pixel at 256 x 192 (tests/memory.rs), so 44 and 1 MiB.
+        // measured 40.4, 40.2 and 40.1 B a pixel at 256 x 192, 640 x 360 and 1280 x 720
+        // (tests/memory.rs, a counting allocator), so 44 and 1 MiB.
         let own = bytes_for(width, height, 44, MIB);
         match self.data {
             DataTerm::Colour => own,

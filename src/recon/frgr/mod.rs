@@ -202,8 +202,15 @@ impl Register for FrgrConfig {
 /// FRGR's own bytes a pixel at its peak (gradients, the level pyramid, RDFC, GLU, enhancement
 /// and QP images, the output), without a L1 or prior guide.
 ///
-/// Measured: a counting allocator (tests/memory.rs) gives 257.5 B a pixel at 256 x 192 (the
-/// default RDFC guide); peak RSS of `gdrecon reconstruct -m frgr` on the demo bundle minus
+/// Measured: peak heap above the frame, counting allocator (tests/memory.rs, `peak_table`;
+/// the estimate includes the L1 guide's `l1_memory` and output):
+///
+/// | configuration | 256 x 192 | 640 x 360 | 1280 x 720 | estimate |
+/// | --- | --- | --- | --- | --- |
+/// | defaults (RDFC guide), `reference`, `levels=1` | 257.5 B/px | 256.6 B/px | 256.3 B/px | 320 B/px + 4 MiB |
+/// | `guide=l1` | | 296.1 B/px | 296.1 B/px | 444 B/px + 5 MiB |
+///
+/// Peak RSS of `gdrecon reconstruct -m frgr` on the demo bundle minus
 /// that of `gdrecon info` (the process and the frame as read) is 42 MiB at 640 x 360 (94512
 /// against 51408 KiB) and 148 MiB at 1280 x 720 (331196 against 180216 KiB), 168 B a pixel
 /// (the frame's read overlaps it). The estimate takes 320 B a pixel and 4 MiB.
