@@ -294,10 +294,16 @@ gdr_error gdr_context_retain(gdr_context *ctx);
 // Filters keep their context alive: releasing a context that filters still use is fine.
 gdr_error gdr_context_release(gdr_context **ctx);
 
-// Set an integer parameter: `"threads"` (0 = all cores; before commit) or `"log_level"` (a `gdr_log_level`, any time).
+// Set an integer parameter: `"threads"` (0 = all cores; before commit), `"max_memory_mb"` (before commit) or `"log_level"` (a `gdr_log_level`, any time).
+//
+// `"max_memory_mb"`: the most memory, in MiB, one filter's plan may need; `gdr_filter_commit`
+// refuses a method and size whose estimate (buffers, scratch, output, OIDN's or ONNX
+// Runtime's share) exceeds it with `GDR_ERROR_OUT_OF_MEMORY` and a message giving the estimate
+// and the limit. 0 (the default) is no limit. On Linux a commit is also refused when the
+// estimate exceeds the address space left under the process's limit (`ulimit -v`).
 gdr_error gdr_context_set_int(gdr_context *ctx, const char *name, int32_t value);
 
-// Read an integer parameter into `*value`: `"threads"` (the pool's thread count once committed, else the setting) or `"log_level"`.
+// Read an integer parameter into `*value`: `"threads"` (the pool's thread count once committed, else the setting), `"max_memory_mb"` or `"log_level"`.
 gdr_error gdr_context_get_int(const gdr_context *ctx, const char *name, int32_t *value);
 
 // Set a string parameter before commit: `"onnxruntime_path"` (ONNX Runtime library), `"model_path"` (GradNet model) or `"oidn_path"` (Open Image Denoise library, for the prior); NULL clears it.

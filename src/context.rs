@@ -21,6 +21,11 @@ pub struct ContextOptions {
     /// searches `OIDN_DYLIB_PATH`, the gdrecon library's folder and the project's Python
     /// environment. Only a plan that must compute a prior loads it.
     pub oidn: Option<PathBuf>,
+    /// The most memory, in MiB, a plan of this context may estimate it needs (frame buffers,
+    /// scratch, the output, OIDN's or ONNX Runtime's share); `Plan::new` refuses a larger plan
+    /// with [`Error::OutOfMemory`]. 0 means no limit (the default); the process's
+    /// address-space limit (`ulimit -v`) is checked either way.
+    pub max_memory_mb: u64,
 }
 
 impl ContextOptions {
@@ -29,6 +34,14 @@ impl ContextOptions {
         ContextOptions {
             threads,
             ..Self::default()
+        }
+    }
+
+    /// These options with a memory limit for each plan, in MiB (0: none).
+    pub fn with_max_memory_mb(self, max_memory_mb: u64) -> Self {
+        ContextOptions {
+            max_memory_mb,
+            ..self
         }
     }
 
@@ -49,6 +62,7 @@ pub struct Context {
     shared: Arc<Shared>,
     #[cfg_attr(not(feature = "oidn"), allow(dead_code))]
     oidn: Option<PathBuf>,
+    max_memory_mb: u64,
 }
 
 /// Objects that plans of one context share (loaded models), by key. Type-erased so that the
@@ -96,7 +110,13 @@ impl Context {
             pool: Arc::new(pool),
             shared: Arc::default(),
             oidn: options.oidn,
+            max_memory_mb: options.max_memory_mb,
         })
+    }
+
+    /// The per-plan memory limit in MiB (0: none).
+    pub fn max_memory_mb(&self) -> u64 {
+        self.max_memory_mb
     }
 
     /// Number of worker threads.

@@ -54,6 +54,11 @@ pub enum Error {
     #[error("Open Image Denoise: {0}")]
     Denoiser(String),
 
+    /// A plan would need more memory than the context's `max_memory_mb` or the process's
+    /// address-space limit leaves, or a large allocation failed.
+    #[error("out of memory: {0}")]
+    OutOfMemory(String),
+
     /// The caller's progress callback asked to stop.
     #[error("cancelled by the caller")]
     Cancelled,

@@ -26,6 +26,20 @@ impl Image {
         }
     }
 
+    /// An image of zeros, `width` x `height`, or [`Error::OutOfMemory`] when the allocation
+    /// fails (or its size overflows) instead of aborting the process.
+    pub fn try_zeros(channels: usize, width: usize, height: usize) -> Result<Self> {
+        let len = channels
+            .checked_mul(width)
+            .and_then(|n| n.checked_mul(height))
+            .ok_or_else(|| too_large(channels, width, height))?;
+        let data = try_vec(len, 0.0).map_err(|_| too_large(channels, width, height))?;
+        Ok(Image {
+            planes: Array3::from_shape_vec((channels, height, width), data)
+                .expect("the length is the shape's"),
+        })
+    }
+
     /// Wraps an array of shape `(channels, height, width)`; it is made contiguous if needed.
     pub fn from_planes(planes: Array3<f32>) -> Self {
         let planes = if planes.is_standard_layout() {
@@ -208,4 +222,26 @@ impl Image {
             .map(|(a, b)| (a - b).abs())
             .fold(0.0, f32::max)
     }
+}
+
+/// The error for an image that cannot be allocated.
+fn too_large(channels: usize, width: usize, height: usize) -> Error {
+    Error::OutOfMemory(format!(
+        "cannot allocate a {width} x {height} x {channels} image ({} MiB)",
+        (channels as u128 * width as u128 * height as u128 * 4) >> 20
+    ))
+}
+
+/// `len` copies of `value`, or [`Error::OutOfMemory`] when the allocation fails instead of
+/// aborting the process.
+pub(crate) fn try_vec<T: Clone>(len: usize, value: T) -> Result<Vec<T>> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(len).map_err(|_| {
+        Error::OutOfMemory(format!(
+            "cannot allocate {} MiB",
+            (len as u128 * std::mem::size_of::<T>() as u128) >> 20
+        ))
+    })?;
+    v.resize(len, value);
+    Ok(v)
 }

@@ -1206,3 +1206,48 @@ fn the_context_takes_an_oidn_path() {
         ok(gdr_context_release(&mut ctx));
     }
 }
+
+#[test]
+fn max_memory_mb_refuses_the_commit() {
+    let frame = frame();
+    let inputs = packed_inputs(&frame);
+    let mut out = vec![0.0f32; 3 * W * H];
+    unsafe {
+        let mut ctx = null_mut();
+        ok(gdr_context_new(&mut ctx));
+        let name = cs("max_memory_mb");
+        fails(
+            gdr_context_set_int(ctx, name.as_ptr(), -1),
+            GDR_ERROR_INVALID_ARGUMENT,
+        );
+        ok(gdr_context_set_int(ctx, name.as_ptr(), 1));
+        let mut value = 0;
+        ok(gdr_context_get_int(ctx, name.as_ptr(), &mut value));
+        assert_eq!(value, 1);
+        ok(gdr_context_commit(ctx));
+        fails(
+            gdr_context_set_int(ctx, name.as_ptr(), 2),
+            GDR_ERROR_INVALID_OPERATION,
+        );
+        // l1 needs about 120 B a pixel and 1 MiB: over 1 MiB at any size.
+        let f = filter(ctx, "l1");
+        set_packed(f, &inputs);
+        ok(gdr_filter_set_image(
+            f,
+            c"output".as_ptr(),
+            out.as_mut_ptr(),
+            W,
+            H,
+            3,
+            0,
+            0,
+        ));
+        let m = fails(gdr_filter_commit(f), GDR_ERROR_OUT_OF_MEMORY);
+        assert!(
+            m.contains("MiB") && m.contains("max_memory_mb = 1") && !m.contains('\n'),
+            "{m}"
+        );
+        ok(gdr_filter_release(&mut { f }));
+        ok(gdr_context_release(&mut ctx));
+    }
+}

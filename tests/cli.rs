@@ -326,3 +326,35 @@ fn parameters_are_set_by_name_and_checked_against_their_range() {
         );
     }
 }
+
+#[test]
+fn max_memory_mb_refuses_in_one_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let bundle = dir.path().join("d.exr");
+    out(gdrecon()
+        .args(["demo", "--width", "64", "--height", "40", "-o"])
+        .arg(&bundle));
+    let output = dir.path().join("o.exr");
+    let a = gdrecon()
+        .arg("reconstruct")
+        .arg(&bundle)
+        .args(["-m", "l1", "--max-memory-mb", "1", "-o"])
+        .arg(&output)
+        .assert()
+        .code(1);
+    let err = String::from_utf8(a.get_output().stderr.clone()).unwrap();
+    assert!(
+        err.starts_with("gdrecon: error: out of memory:")
+            && err.contains("MiB")
+            && err.contains("max_memory_mb = 1")
+            && err.lines().count() == 1,
+        "{err}"
+    );
+    assert!(!output.exists());
+    // A limit the plan fits in runs.
+    out(gdrecon()
+        .arg("reconstruct")
+        .arg(&bundle)
+        .args(["-m", "l1", "--max-memory-mb", "64", "-o"])
+        .arg(&output));
+}

@@ -61,6 +61,7 @@ impl Drop for InCallback {
 #[derive(Default)]
 struct Settings {
     threads: Option<usize>,
+    max_memory_mb: u64,
     onnxruntime_path: Option<String>,
     model_path: Option<String>,
     oidn_path: Option<String>,
@@ -214,7 +215,13 @@ pub unsafe extern "C" fn gdr_context_release(ctx: *mut *mut gdr_context) -> gdr_
     })
 }
 
-/// Set an integer parameter: `"threads"` (0 = all cores; before commit) or `"log_level"` (a `gdr_log_level`, any time).
+/// Set an integer parameter: `"threads"` (0 = all cores; before commit), `"max_memory_mb"` (before commit) or `"log_level"` (a `gdr_log_level`, any time).
+///
+/// `"max_memory_mb"`: the most memory, in MiB, one filter's plan may need; `gdr_filter_commit`
+/// refuses a method and size whose estimate (buffers, scratch, output, OIDN's or ONNX
+/// Runtime's share) exceeds it with `GDR_ERROR_OUT_OF_MEMORY` and a message giving the estimate
+/// and the limit. 0 (the default) is no limit. On Linux a commit is also refused when the
+/// estimate exceeds the address space left under the process's limit (`ulimit -v`).
 #[no_mangle]
 pub unsafe extern "C" fn gdr_context_set_int(
     ctx: *mut gdr_context,
@@ -236,6 +243,18 @@ pub unsafe extern "C" fn gdr_context_set_int(
                 s.threads = (threads > 0).then_some(threads);
                 Ok(())
             }
+            "max_memory_mb" => {
+                let mb = u64::try_from(value).map_err(|_| {
+                    CapiError::new(
+                        GDR_ERROR_INVALID_ARGUMENT,
+                        format!("max_memory_mb is {value}, expected 0 (no limit) or a positive count of MiB"),
+                    )
+                })?;
+                let mut s = ctx.settings();
+                frozen(&s, name)?;
+                s.max_memory_mb = mb;
+                Ok(())
+            }
             "log_level" => {
                 if !(0..=gdr_log_level::GDR_LOG_DEBUG as i32).contains(&value) {
                     return err(
@@ -253,7 +272,7 @@ pub unsafe extern "C" fn gdr_context_set_int(
     })
 }
 
-/// Read an integer parameter into `*value`: `"threads"` (the pool's thread count once committed, else the setting) or `"log_level"`.
+/// Read an integer parameter into `*value`: `"threads"` (the pool's thread count once committed, else the setting), `"max_memory_mb"` or `"log_level"`.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_context_get_int(
     ctx: *const gdr_context,
@@ -272,6 +291,7 @@ pub unsafe extern "C" fn gdr_context_get_int(
                 };
                 i32::try_from(n).unwrap_or(i32::MAX)
             }
+            "max_memory_mb" => i32::try_from(ctx.settings().max_memory_mb).unwrap_or(i32::MAX),
             "log_level" => ctx.log_level.load(Ordering::Relaxed) as i32,
             _ => return unknown(name, "gdr_context_get_int"),
         };
@@ -348,7 +368,8 @@ pub unsafe extern "C" fn gdr_context_commit(ctx: *mut gdr_context) -> gdr_error 
     with_context("gdr_context_commit", ctx, |ctx| {
         let mut s = ctx.settings();
         frozen(&s, "the context")?;
-        let mut options = ContextOptions::with_threads(s.threads);
+        let mut options =
+            ContextOptions::with_threads(s.threads).with_max_memory_mb(s.max_memory_mb);
         if let Some(path) = &s.oidn_path {
             options = options.with_oidn(path);
         }
@@ -378,7 +399,7 @@ fn frozen(s: &Settings, what: &str) -> CResult {
 fn unknown(name: &str, function: &str) -> CResult {
     let valid = match function {
         "gdr_context_set_string" => "onnxruntime_path, model_path, oidn_path",
-        _ => "threads, log_level",
+        _ => "threads, max_memory_mb, log_level",
     };
     err(
         GDR_ERROR_INVALID_ARGUMENT,

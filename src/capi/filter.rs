@@ -175,8 +175,9 @@ impl State {
             self.plan = None;
             self.planned = None;
             self.out = Image::zeros(3, 0, 0);
-            self.plan = Some(Plan::new(pool, &self.config, w, h)?);
-            self.out = Image::zeros(3, w, h);
+            let plan = Plan::new(pool, &self.config, w, h)?;
+            self.out = Image::try_zeros(3, w, h)?;
+            self.plan = Some(plan);
             self.planned = Some((self.config.clone(), w, h));
             note = format!("planned method {} for {w} x {h}", self.config.method());
         }

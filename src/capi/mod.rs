@@ -156,6 +156,7 @@ impl From<Error> for CapiError {
             Error::Unsupported(_) => GDR_ERROR_UNSUPPORTED,
             Error::Io { .. } | Error::Exr { .. } => GDR_ERROR_IO,
             Error::Cancelled => GDR_ERROR_CANCELLED,
+            Error::OutOfMemory(_) => GDR_ERROR_OUT_OF_MEMORY,
             Error::Model(_) => GDR_ERROR_INVALID_MODEL,
             Error::Runtime(_) | Error::Denoiser(_) => GDR_ERROR_RUNTIME,
         };

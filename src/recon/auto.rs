@@ -213,6 +213,21 @@ impl Register for AutoConfig {
     fn gradnet_mut(&mut self) -> Option<&mut GradNetConfig> {
         Some(&mut self.gradnet)
     }
+
+    /// The largest of the paths it may plan (a frame's choice is made at execute). Plans made
+    /// for earlier frames are kept, so a sequence whose frames take different paths can hold
+    /// more than this: the estimate covers one path, as one frame takes.
+    fn memory_estimate(&self, width: usize, height: usize) -> u64 {
+        [
+            MethodConfig::Frgr(self.frgr).memory_estimate(width, height),
+            MethodConfig::GradNet(self.gradnet.clone()).memory_estimate(width, height),
+            MethodConfig::PoissonL1(self.l1).memory_estimate(width, height),
+            MethodConfig::PoissonL1(self.prior).memory_estimate(width, height),
+        ]
+        .into_iter()
+        .max()
+        .unwrap_or(0)
+    }
 }
 
 /// The `auto` method planned for one size.

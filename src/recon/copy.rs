@@ -55,6 +55,11 @@ impl Register for CopyConfig {
     ) -> Result<Box<dyn Reconstructor>> {
         Ok(Box::new(Copy { gain: self.gain }))
     }
+
+    fn memory_estimate(&self, width: usize, height: usize) -> u64 {
+        // The output alone.
+        super::bytes_for(width, height, 12, 0)
+    }
 }
 
 /// `copy` planned (it needs no buffers).

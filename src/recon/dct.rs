@@ -21,6 +21,8 @@ use rayon::prelude::*;
 use rustdct::{DctPlanner, TransformType2And3};
 
 use super::ops::Dims;
+use crate::error::Result;
+use crate::image::try_vec;
 
 /// A planned solver for one image size and `alpha`.
 pub(crate) struct DctPoisson {
@@ -36,8 +38,8 @@ pub(crate) struct DctPoisson {
 const BLOCK: usize = 32;
 
 impl DctPoisson {
-    /// Plans the transforms and eigenvalues for `dims` and `alpha`.
-    pub fn new(dims: Dims, alpha: f32) -> Self {
+    /// Plans the transforms and eigenvalues for `dims` and `alpha`; fails with `OutOfMemory` when the eigenvalue plane cannot be allocated.
+    pub fn new(dims: Dims, alpha: f32) -> Result<Self> {
         let Dims { w, h } = dims;
         let mut planner = DctPlanner::new();
         let rows = planner.plan_dct2(w);
@@ -47,7 +49,7 @@ impl DctPoisson {
         let ly: Vec<f64> = (0..h).map(|k| eig(k, h)).collect();
         let alpha2 = f64::from(alpha) * f64::from(alpha);
         let scale = 4.0 / (w as f64 * h as f64);
-        let mut inv_eigen = vec![0.0f32; w * h];
+        let mut inv_eigen = try_vec(w * h, 0.0f32)?;
         for x in 0..w {
             let lx = eig(x, w);
             for y in 0..h {
@@ -59,13 +61,13 @@ impl DctPoisson {
                 };
             }
         }
-        DctPoisson {
+        Ok(DctPoisson {
             dims,
             rows,
             cols,
             inv_eigen,
             transposed: Vec::new(),
-        }
+        })
     }
 
     /// Solves in place for every plane of `planes` (a multiple of `w * h` values).
@@ -156,7 +158,7 @@ mod tests {
     fn screened_identity_when_gradients_vanish() {
         // (alpha^2 + D^T D) u = alpha^2 c has the solution u = c for a constant c.
         let dims = Dims { w: 9, h: 5 };
-        let mut s = DctPoisson::new(dims, 0.5);
+        let mut s = DctPoisson::new(dims, 0.5).unwrap();
         let mut f = vec![0.25 * 3.0; dims.len()];
         s.solve(&mut f);
         for v in f {

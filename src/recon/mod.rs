@@ -97,7 +97,25 @@ pub(crate) trait Register: Settings + Clone {
     fn gradnet_mut(&mut self) -> Option<&mut GradNetConfig> {
         None
     }
+
+    /// An upper estimate of the bytes a plan for `width` x `height` frames holds at its peak
+    /// (planned buffers, execution scratch, the output image, a loaded denoiser's or
+    /// network's share), beyond the frame itself. [`Plan::new`] compares it with the
+    /// context's `max_memory_mb` and the address space the process has left.
+    fn memory_estimate(&self, width: usize, height: usize) -> u64;
 }
+
+/// `bytes_per_pixel` bytes for each pixel of a `width` x `height` frame plus `fixed` bytes,
+/// saturating: the form of every method's [`Register::memory_estimate`].
+pub(crate) fn bytes_for(width: usize, height: usize, bytes_per_pixel: u64, fixed: u64) -> u64 {
+    (width as u64)
+        .saturating_mul(height as u64)
+        .saturating_mul(bytes_per_pixel)
+        .saturating_add(fixed)
+}
+
+/// One MiB.
+pub(crate) const MIB: u64 = 1 << 20;
 
 /// Declares the methods: one line each, `Variant(ConfigType) = "name", "summary";`, optionally
 /// behind a `#[cfg(...)]`. Generates [`Method`], [`MethodConfig`] and their dispatch.
@@ -251,6 +269,7 @@ trait RegisterDyn {
         height: usize,
     ) -> Result<Box<dyn Reconstructor>>;
     fn gradnet_dyn(&mut self) -> Option<&mut GradNetConfig>;
+    fn memory_dyn(&self, width: usize, height: usize) -> u64;
 }
 
 impl<C: Register> RegisterDyn for C {
@@ -267,6 +286,10 @@ impl<C: Register> RegisterDyn for C {
 
     fn gradnet_dyn(&mut self) -> Option<&mut GradNetConfig> {
         self.gradnet_mut()
+    }
+
+    fn memory_dyn(&self, width: usize, height: usize) -> u64 {
+        self.memory_estimate(width, height)
     }
 }
 
@@ -347,6 +370,13 @@ impl MethodConfig {
         self.register().gradnet_dyn()
     }
 
+    /// An upper estimate of the bytes a plan of this configuration for `width` x `height`
+    /// frames needs at its peak, beyond the frame: what [`Plan::new`] checks against the
+    /// context's `max_memory_mb` and the process's address-space limit.
+    pub fn memory_estimate(&self, width: usize, height: usize) -> u64 {
+        self.register_ref().memory_dyn(width, height)
+    }
+
     pub(crate) fn instantiate(
         &self,
         context: &Context,
@@ -378,6 +408,7 @@ impl Plan {
                 "plan size is {width} x {height}: an image needs at least one pixel"
             )));
         }
+        check_memory(context, config, width, height)?;
         let inner = context.install(|| config.instantiate(context, width, height))?;
         Ok(Plan {
             context: context.clone(),
@@ -443,7 +474,7 @@ impl Plan {
 
     /// Reconstructs `frame` into a new image.
     pub fn execute(&mut self, frame: &Frame, progress: &Progress) -> Result<(Image, Report)> {
-        let mut out = Image::zeros(3, self.width, self.height);
+        let mut out = Image::try_zeros(3, self.width, self.height)?;
         let report = self.execute_into(frame, &mut out, progress)?;
         Ok((out, report))
     }
@@ -457,6 +488,69 @@ impl fmt::Debug for Plan {
             .field("height", &self.height)
             .finish()
     }
+}
+
+/// Refuses a plan whose [`MethodConfig::memory_estimate`] exceeds the context's
+/// `max_memory_mb` or, on Linux, the address space left under `RLIMIT_AS`.
+fn check_memory(
+    context: &Context,
+    config: &MethodConfig,
+    width: usize,
+    height: usize,
+) -> Result<()> {
+    let estimate = config.memory_estimate(width, height);
+    let mib = |b: u64| b.div_ceil(MIB);
+    let limit = context.max_memory_mb();
+    if limit > 0 && estimate > limit.saturating_mul(MIB) {
+        return Err(Error::OutOfMemory(format!(
+            "method {} for {width} x {height} needs about {} MiB, more than max_memory_mb = {limit}",
+            config.method(),
+            mib(estimate)
+        )));
+    }
+    if let Some(left) = address_space_left() {
+        if estimate > left {
+            return Err(Error::OutOfMemory(format!(
+                "method {} for {width} x {height} needs about {} MiB, more than the {} MiB of \
+                 address space the process has left under its limit (ulimit -v)",
+                config.method(),
+                mib(estimate),
+                left / MIB
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Bytes of address space left under `RLIMIT_AS` (soft limit minus the current virtual size),
+/// `None` when there is no limit or it cannot be read.
+#[cfg(target_os = "linux")]
+#[allow(unsafe_code)]
+fn address_space_left() -> Option<u64> {
+    let mut limit = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit writes one rlimit through a valid pointer.
+    if unsafe { libc::getrlimit(libc::RLIMIT_AS, &mut limit) } != 0
+        || limit.rlim_cur == libc::RLIM_INFINITY
+    {
+        return None;
+    }
+    // The first field of /proc/self/statm is the virtual size in pages.
+    let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
+    let pages: u64 = statm.split_whitespace().next()?.parse().ok()?;
+    // SAFETY: sysconf has no preconditions.
+    let page = u64::try_from(unsafe { libc::sysconf(libc::_SC_PAGESIZE) }).ok()?;
+    // rlim_t is 32 bits on 32-bit targets.
+    #[allow(clippy::unnecessary_cast)]
+    let limit = limit.rlim_cur as u64;
+    Some(limit.saturating_sub(pages.saturating_mul(page)))
+}
+
+#[cfg(not(target_os = "linux"))]
+fn address_space_left() -> Option<u64> {
+    None
 }
 
 /// Replaces non-finite output values by the base colour; returns how many there were.

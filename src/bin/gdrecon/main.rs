@@ -182,6 +182,10 @@ struct ReconstructArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Refuse a plan whose memory estimate exceeds this many MiB (0: no limit), with an error
+    /// instead of running out of memory.
+    #[arg(long, default_value_t = 0)]
+    max_memory_mb: u64,
     /// Refuse frames with NaN, Inf or negative colour instead of replacing them.
     #[arg(long)]
     strict: bool,
@@ -252,7 +256,12 @@ fn reconstruct(args: ReconstructArgs) -> gdrecon::Result<()> {
     let frame = load_frame(&args.input, policy, args.spp)?;
     let read_time = t0.elapsed();
     let config = args.method.config()?;
-    let context = Context::new(args.method.runtime.context(args.threads))?;
+    let context = Context::new(
+        args.method
+            .runtime
+            .context(args.threads)
+            .with_max_memory_mb(args.max_memory_mb),
+    )?;
     let mut plan = Plan::new(&context, &config, frame.width(), frame.height())?;
     let bar = bar::DelayedBar::new(args.quiet);
     let callback = |f: f64| bar.update(f);

@@ -18,9 +18,9 @@ use rayon::prelude::*;
 
 use super::converged::converged_mask;
 use super::param::{Param, Params, Preset};
-use super::poisson_l1::PoissonL1;
-use super::prior::{Prior, Quality};
-use super::{Method, PoissonL1Config, Reconstructor, Register};
+use super::poisson_l1::{l1_memory, PoissonL1};
+use super::prior::{prior_memory, Prior, Quality};
+use super::{bytes_for, Method, PoissonL1Config, Reconstructor, Register, MIB};
 use crate::context::Context;
 use crate::error::{Error, Result};
 use crate::frame::Frame;
@@ -186,7 +186,35 @@ impl Register for FrgrConfig {
     ) -> Result<Box<dyn Reconstructor>> {
         Ok(Box::new(Frgr::new(context, *self, width, height)?))
     }
+
+    fn memory_estimate(&self, width: usize, height: usize) -> u64 {
+        let own = bytes_for(width, height, FRGR_BYTES_PER_PIXEL, 4 * MIB);
+        let guide = match self.guide {
+            FrgrGuide::PoissonL1 => l1_memory(&PoissonL1Config::default(), width, height)
+                .saturating_add(bytes_for(width, height, 12, 0)),
+            FrgrGuide::Prior => prior_memory(width, height),
+            FrgrGuide::Rdfc | FrgrGuide::Colour => 0,
+        };
+        own.saturating_add(guide)
+    }
 }
+
+/// FRGR's own bytes a pixel at its peak (gradients, the level pyramid, RDFC, GLU, enhancement
+/// and QP images, the output), without a L1 or prior guide.
+///
+/// Measured: peak heap above the frame, counting allocator (tests/memory.rs, `peak_table`;
+/// the estimate includes the L1 guide's `l1_memory` and output):
+///
+/// | configuration | 256 x 192 | 640 x 360 | 1280 x 720 | estimate |
+/// | --- | --- | --- | --- | --- |
+/// | defaults (RDFC guide), `reference`, `levels=1` | 257.5 B/px | 256.6 B/px | 256.3 B/px | 320 B/px + 4 MiB |
+/// | `guide=l1` | | 296.1 B/px | 296.1 B/px | 444 B/px + 5 MiB |
+///
+/// Peak RSS of `gdrecon reconstruct -m frgr` on the demo bundle minus
+/// that of `gdrecon info` (the process and the frame as read) is 42 MiB at 640 x 360 (94512
+/// against 51408 KiB) and 148 MiB at 1280 x 720 (331196 against 180216 KiB), 168 B a pixel
+/// (the frame's read overlaps it). The estimate takes 320 B a pixel and 4 MiB.
+const FRGR_BYTES_PER_PIXEL: u64 = 320;
 
 /// The release's gradient-enhancement iterations.
 const REFERENCE_ENHANCE_ITERATIONS: u32 = 1000;
@@ -224,7 +252,7 @@ impl Frgr {
         let l1 = match config.guide {
             FrgrGuide::PoissonL1 => Some((
                 PoissonL1::new(PoissonL1Config::default(), width, height)?,
-                Image::zeros(3, width, height),
+                Image::try_zeros(3, width, height)?,
             )),
             FrgrGuide::Rdfc | FrgrGuide::Colour | FrgrGuide::Prior => None,
         };
@@ -233,8 +261,8 @@ impl Frgr {
         Ok(Frgr {
             levels: level_sizes(width, height, config.levels),
             cfg: config,
-            dx: Image::zeros(3, width, height),
-            dy: Image::zeros(3, width, height),
+            dx: Image::try_zeros(3, width, height)?,
+            dy: Image::try_zeros(3, width, height)?,
             l1,
             prior,
         })

@@ -151,6 +151,20 @@ impl Register for GradNetConfig {
     fn gradnet_mut(&mut self) -> Option<&mut GradNetConfig> {
         Some(self)
     }
+
+    /// Peak RSS of `gdrecon reconstruct -m gradnet` (ONNX Runtime 1.2x, CPU, the demo bundle)
+    /// minus that of `gdrecon info` on the same bundle (the process, and the frame as read):
+    ///
+    /// | size | peak RSS | baseline | difference |
+    /// | --- | --- | --- | --- |
+    /// | 640 x 360 | 347840 KiB | 51408 KiB | 289 MiB |
+    /// | 1280 x 720 | 986816 KiB | 180216 KiB | 788 MiB |
+    ///
+    /// The slope is 756 B a pixel and the intercept 123 MiB (the session, its weights); the
+    /// estimate takes 850 B a pixel and 192 MiB.
+    fn memory_estimate(&self, width: usize, height: usize) -> u64 {
+        super::bytes_for(width, height, 850, 192 * super::MIB)
+    }
 }
 
 #[cfg(feature = "gradnet")]

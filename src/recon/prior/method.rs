@@ -59,6 +59,12 @@ impl Register for PriorConfig {
             self.quality,
         ))))
     }
+
+    fn memory_estimate(&self, width: usize, height: usize) -> u64 {
+        // OIDN's share and the output.
+        super::prior_memory(width, height)
+            .saturating_add(super::super::bytes_for(width, height, 12, 0))
+    }
 }
 
 /// `prior` planned.

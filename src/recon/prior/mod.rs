@@ -94,6 +94,24 @@ pub(crate) const PRIOR_ALPHA_DOC: &str =
 
 /// A planned screened Poisson solve run on the prior instead of the base image: each frame is
 /// handed to it as the prior (its `color`) and the frame's gradients.
+/// Bytes a [`Prior`] computed by OIDN 2 holds at its peak for a `width` x `height` frame: its
+/// four interleaved buffers and planar output (60 B a pixel) and OIDN's own (the library,
+/// weights and its tensors).
+///
+/// Peak RSS of `gdrecon reconstruct -m prior` (OIDN 2.3, CPU, the demo bundle) minus that of
+/// `gdrecon info` on the same bundle (the process, and the frame as read):
+///
+/// | size | peak RSS | baseline | difference |
+/// | --- | --- | --- | --- |
+/// | 640 x 360 | 188412 KiB | 51408 KiB | 134 MiB |
+/// | 1280 x 720 | 691548 KiB | 180216 KiB | 499 MiB |
+///
+/// The slope is 554 B a pixel and the intercept 12 MiB; the estimate takes 640 B a pixel and
+/// 64 MiB (OIDN's tile size and its weights vary with the build and the CPU).
+pub(crate) fn prior_memory(width: usize, height: usize) -> u64 {
+    super::bytes_for(width, height, 640, 64 * super::MIB)
+}
+
 pub(crate) struct OnPrior {
     prior: Prior,
     inner: Box<dyn Reconstructor>,
@@ -198,7 +216,7 @@ impl Prior {
                 Quality::Fast => oidn::QUALITY_FAST,
             };
             let filter = oidn::Filter::new(device, self.width, self.height, quality)?;
-            self.computed = Some((filter, Image::zeros(3, self.width, self.height)));
+            self.computed = Some((filter, Image::try_zeros(3, self.width, self.height)?));
         }
         let (filter, image) = self.computed.as_mut().expect("made above");
         let (albedo, normal) = (frame.albedo(), frame.normal());
