@@ -19,39 +19,8 @@
 #include <time.h>
 #include <unistd.h>
 
+#include "check.h"
 #include "gdrecon.h"
-
-static int passed = 0, failed = 0;
-
-#define CHECK(cond)                                                                  \
-    do {                                                                             \
-        if (cond) {                                                                  \
-            passed++;                                                                \
-        } else {                                                                     \
-            failed++;                                                                \
-            fprintf(stderr, "FAIL %s:%d: %s\n", __FILE__, __LINE__, #cond);          \
-        }                                                                            \
-    } while (0)
-
-static const char* expect_at(gdr_error got, gdr_error want, const char* expr, int line) {
-    static char buf[1024];
-    const char* msg = "";
-    gdr_error last = gdr_get_error(&msg);
-    buf[0] = '\0';
-    if (got == want && last == want) {
-        passed++;
-        strncpy(buf, msg, sizeof buf - 1);
-        buf[sizeof buf - 1] = '\0';
-    } else {
-        failed++;
-        fprintf(stderr, "FAIL line %d: %s gave %s (last error %s), expected %s: %s\n", line, expr,
-                gdr_error_name(got), gdr_error_name(last), gdr_error_name(want), msg);
-    }
-    return buf;
-}
-#define EXPECT(call, want) expect_at((call), (want), #call, __LINE__)
-#define OK(call) EXPECT(call, GDR_ERROR_NONE)
-#define CONTAINS(msg, s) CHECK(strstr((msg), (s)) != NULL)
 
 static double now_seconds(void) {
     struct timespec t;
