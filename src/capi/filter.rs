@@ -604,10 +604,9 @@ pub unsafe extern "C" fn gdr_filter_execute(filter: *mut gdr_filter) -> gdr_erro
         })?;
         let callback = st.progress;
         let cancel = &f.cancel;
+        // `Progress::update` checks the cancel flag before calling this; the check after the
+        // caller's callback catches a cancel made during it.
         let on_progress = move |fraction: f64| -> bool {
-            if cancel.load(Ordering::SeqCst) {
-                return false;
-            }
             match callback {
                 Some((cb, user)) => {
                     // SAFETY: the caller registered `cb` with `user` for exactly this use.

@@ -520,27 +520,6 @@ impl Nlm<'_> {
     }
 }
 
-/// [`nlm_candidates_or_stop`], never stopped (the tests' entry point).
-#[cfg(test)]
-pub(crate) fn nlm_candidates(
-    colour: &Image,
-    var: &Image,
-    features: &[Feature],
-    data: &Image,
-    radius: usize,
-    candidates: &[Candidate],
-) -> Vec<(Image, Vec<f32>)> {
-    nlm_candidates_or_stop(
-        colour,
-        var,
-        features,
-        data,
-        radius,
-        candidates,
-        &Progress::none(),
-    )
-}
-
 /// Joint NLM / bilateral filtering of `data` guided by `colour` (with its per-channel variance
 /// `var`) and `features`, for each candidate; returns per candidate the filtered data and the
 /// centre weight ratio `w_centre / sum w` per pixel. Colour, variance and data have 3
@@ -549,7 +528,7 @@ pub(crate) fn nlm_candidates(
 ///
 /// Tiles (in parallel) loop over the window offsets, and per offset over their rows; a tile's
 /// result depends on nothing but its pixels, so the output does not depend on the threads.
-fn nlm_candidates_or_stop(
+pub(crate) fn nlm_candidates(
     colour: &Image,
     var: &Image,
     features: &[Feature],
@@ -638,7 +617,7 @@ fn nlm_candidates_or_stop(
     out
 }
 
-/// The signature of [`nlm_candidates_or_stop`] (tests swap in a straightforward version).
+/// The signature of [`nlm_candidates`] (tests swap in a straightforward version).
 type NlmFn = fn(
     &Image,
     &Image,
@@ -658,7 +637,7 @@ pub(crate) fn rdfc(
     normal: Option<&Image>,
     stop: &Progress,
 ) -> Image {
-    rdfc_with(colour, var, albedo, normal, nlm_candidates_or_stop, stop)
+    rdfc_with(colour, var, albedo, normal, nlm_candidates, stop)
 }
 
 fn rdfc_with(

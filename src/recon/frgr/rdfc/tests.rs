@@ -188,7 +188,7 @@ fn tiled_nlm_matches_the_straightforward_one() {
         (&feats[1..], &onehot, 3, &sel),
     ];
     for (f, data, radius, cands) in cases {
-        let fast = nlm_candidates(&colour, &var, f, data, radius, cands);
+        let fast = nlm_candidates(&colour, &var, f, data, radius, cands, &Progress::none());
         let slow = naive_nlm_candidates(&colour, &var, f, data, radius, cands, &Progress::none());
         for ((a, ra), (b, rb)) in fast.iter().zip(&slow) {
             let d = max_rel(a, b, 1e-3);
@@ -209,7 +209,15 @@ fn tiled_nlm_does_not_depend_on_the_thread_count() {
     let feats = [Feature::new(&albedo), Feature::new(&normal)];
     let run = |threads| {
         with_threads(threads, || {
-            nlm_candidates(&colour, &var, &feats, &colour, 4, &CANDIDATES)
+            nlm_candidates(
+                &colour,
+                &var,
+                &feats,
+                &colour,
+                4,
+                &CANDIDATES,
+                &Progress::none(),
+            )
         })
     };
     let (one, three) = (run(1), run(3));
@@ -224,7 +232,15 @@ fn tiled_nlm_matches_the_straightforward_one_on_tiny_images() {
     for (w, h) in [(1, 1), (2, 1), (1, 5), (5, 3), (4, 9), (7, 7), (12, 2)] {
         let (colour, var, albedo, normal) = synthetic(w, h);
         let feats = [Feature::new(&albedo), Feature::new(&normal)];
-        let fast = nlm_candidates(&colour, &var, &feats, &colour, 10, &CANDIDATES);
+        let fast = nlm_candidates(
+            &colour,
+            &var,
+            &feats,
+            &colour,
+            10,
+            &CANDIDATES,
+            &Progress::none(),
+        );
         let slow = naive_nlm_candidates(
             &colour,
             &var,
@@ -302,7 +318,15 @@ fn rdfc_on_frames_matches_the_straightforward_one() {
         );
         // The candidates alone (no argmin, whose near-ties can flip either way).
         let feats: Vec<Feature> = albedo.into_iter().chain(normal).map(Feature::new).collect();
-        let a = nlm_candidates(colour, &var, &feats, colour, 10, &CANDIDATES);
+        let a = nlm_candidates(
+            colour,
+            &var,
+            &feats,
+            colour,
+            10,
+            &CANDIDATES,
+            &Progress::none(),
+        );
         let b = naive_nlm_candidates(
             colour,
             &var,
