@@ -75,9 +75,20 @@ fn every_corpus_file_is_read_exactly_or_refused_naming_file_and_fault() {
     let clean = clean();
     let cases = cases();
     assert!(cases.len() >= 18, "the corpus lost files: {}", cases.len());
+    // Inside a pool the blocks are decompressed in parallel: the outcome must not change.
+    let context = gdrecon::Context::new(gdrecon::ContextOptions::with_threads(Some(2))).unwrap();
     for case in &cases {
         let path = corpus().join(&case.file);
         let result = io::read_bundle(&path, Policy::Strict);
+        let parallel = context.install(|| io::read_bundle(&path, Policy::Strict));
+        match (&result, &parallel) {
+            (Ok(a), Ok(b)) => assert_same(b, a, &case.file),
+            (Err(a), Err(b)) => assert_eq!(a.to_string(), b.to_string(), "{}", case.file),
+            _ => panic!(
+                "{}: {result:?} single-threaded, {parallel:?} in a pool",
+                case.file
+            ),
+        }
         match case.expect.as_str() {
             "same" => {
                 let frame = result.unwrap_or_else(|e| panic!("{} ({}): {e}", case.file, case.why));
@@ -150,10 +161,20 @@ fn table(bytes: &[u8], chunks: usize) -> (usize, Vec<u64>) {
 }
 
 fn must_refuse(bytes: &[u8], what: &str) {
-    match io::read_bundle_from_bytes(bytes).and_then(|raw| raw.into_frame(Policy::Strict)) {
+    let read = || io::read_bundle_from_bytes(bytes).and_then(|raw| raw.into_frame(Policy::Strict));
+    match read() {
         Err(e) => assert!(!e.to_string().contains('\n'), "{what}: {e}"),
         Ok(_) => panic!("{what}: accepted"),
     }
+    // Blocks decompressed in parallel are refused alike.
+    thread_local! {
+        static POOL: gdrecon::Context =
+            gdrecon::Context::new(gdrecon::ContextOptions::with_threads(Some(2))).unwrap();
+    }
+    assert!(
+        POOL.with(|pool| pool.install(read)).is_err(),
+        "{what}: accepted in a pool"
+    );
 }
 
 /// Every way of pointing one table entry at another chunk, and every chunk's coordinates

@@ -10,13 +10,14 @@
 //! thread pool per call, and callers own the threads.
 
 use std::collections::BTreeMap;
-use std::io::{BufReader, Cursor, Read, Seek, SeekFrom};
+use std::io::{BufReader, Cursor, Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
+use exr::meta::MetaData;
 use exr::prelude as x;
-use exr::prelude::{AttributeValue, FlatSamples, ReadChannels, ReadLayers};
-use smallvec::SmallVec;
+use exr::prelude::AttributeValue;
 
+use super::blocks::{self, Fault, Target};
 use super::chunks;
 use crate::error::{Error, Result};
 use crate::frame::{Frame, FrameBuilder, Layer};
@@ -87,20 +88,6 @@ pub fn read_bundle_from_bytes(bytes: &[u8]) -> Result<RawBundle> {
     parse_bundle(Cursor::new(bytes), Path::new("<memory>"))
 }
 
-type AnyImage = x::Image<x::Layers<x::AnyChannels<FlatSamples>>>;
-
-fn decode(reader: impl Read + Seek, path: &Path) -> Result<AnyImage> {
-    x::read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .all_layers()
-        .all_attributes()
-        .non_parallel()
-        .from_buffered(reader)
-        .map_err(|e| exr_error(e, path))
-}
-
 fn exr_error(e: exr::error::Error, path: &Path) -> Error {
     use exr::error::Error as E;
     let message = match e {
@@ -134,9 +121,9 @@ const SIZE_SLACK: u64 = 64 << 20;
 
 /// Reads the headers and refuses what cannot be decoded into the image the file describes:
 /// features the decoder lacks (named), sizes the file cannot plausibly hold, and a chunk layout
-/// that does not store every block exactly once where it belongs ([`chunks::check`]). Rewinds
-/// the reader.
-fn check_layout(mut reader: impl Read + Seek, path: &Path) -> Result<()> {
+/// that does not store every block exactly once where it belongs ([`chunks::check`]). Returns
+/// the headers and rewinds the reader.
+fn check_layout(mut reader: impl Read + Seek, path: &Path) -> Result<MetaData> {
     let file_len = reader
         .seek(SeekFrom::End(0))
         .and_then(|len| reader.seek(SeekFrom::Start(0)).map(|_| len))
@@ -242,42 +229,52 @@ fn check_layout(mut reader: impl Read + Seek, path: &Path) -> Result<()> {
     chunks::check(&mut reader, &meta.headers, file_len).map_err(|message| Error::Exr {
         path: path.to_owned(),
         message,
-    })
+    })?;
+    reader
+        .seek(SeekFrom::Start(0))
+        .map_err(|source| Error::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+    Ok(meta)
 }
 
-fn parse_bundle(mut reader: impl Read + Seek, path: &Path) -> Result<RawBundle> {
-    check_layout(&mut reader, path)?;
-    let image = decode(reader, path)?;
+fn parse_bundle(mut reader: impl Read + Seek + Send, path: &Path) -> Result<RawBundle> {
+    let meta = check_layout(&mut reader, path)?;
     let err = |message: String| Error::Exr {
         path: path.to_owned(),
         message,
     };
-    let first = image
-        .layer_data
+    let first = meta
+        .headers
         .first()
         .ok_or_else(|| err("the file has no image parts".into()))?;
-    let (w, h) = (first.size.0, first.size.1);
-    let origin = first.attributes.layer_position;
-    // (layer, component upper-case) -> (full channel name, samples)
-    let mut found: BTreeMap<Layer, Vec<(String, String, Vec<f32>)>> = BTreeMap::new();
+    let (w, h) = (first.layer_size.0, first.layer_size.1);
+    let origin = first.own_attributes.layer_position;
+    let mut found: BTreeMap<Layer, Vec<Stored>> = BTreeMap::new();
     let mut ignored = Vec::new();
     let mut warnings = Vec::new();
-    let mut spp_attr = attribute_spp(&image.attributes.other);
-    for part in &image.layer_data {
-        let part_name = part.attributes.layer_name.as_ref().map(|t| t.to_string());
-        if (part.size.0, part.size.1) != (w, h) || part.attributes.layer_position != origin {
+    let mut spp_attr = attribute_spp(&first.shared_attributes.other);
+    for (p, part) in meta.headers.iter().enumerate() {
+        let part_name = part
+            .own_attributes
+            .layer_name
+            .as_ref()
+            .map(|t| t.to_string());
+        let position = part.own_attributes.layer_position;
+        if (part.layer_size.0, part.layer_size.1) != (w, h) || position != origin {
             return Err(err(format!(
                 "part '{}' is {} x {} at {:?}, but the first part is {w} x {h} at {:?}: all \
                  layers of a bundle must share one data window",
                 part_name.as_deref().unwrap_or(""),
-                part.size.0,
-                part.size.1,
-                part.attributes.layer_position,
+                part.layer_size.0,
+                part.layer_size.1,
+                position,
                 origin
             )));
         }
-        spp_attr = spp_attr.or(attribute_spp(&part.attributes.other));
-        for channel in &part.channel_data.list {
+        spp_attr = spp_attr.or(attribute_spp(&part.own_attributes.other));
+        for (c, channel) in part.channels.list.iter().enumerate() {
             // A channel's own name is used as it is when it names a layer ("color.R" in a part
             // of any name, the single part's name attribute included); a part named after the
             // layer supplies it otherwise ("R" in part "color").
@@ -304,7 +301,7 @@ fn parse_bundle(mut reader: impl Read + Seek, path: &Path) -> Result<RawBundle> 
                         .unwrap_or_default()
                 )));
             }
-            entries.push((full, component, to_f32(&channel.sample_data)));
+            entries.push((full, component, (p, c)));
         }
     }
     let spp = match spp_attr {
@@ -317,27 +314,55 @@ fn parse_bundle(mut reader: impl Read + Seek, path: &Path) -> Result<RawBundle> 
         }
         None => None,
     };
-    let mut layers = BTreeMap::new();
+    let mut targets = channel_slots(&meta);
+    let mut images = Vec::new();
+    let mut order = Vec::new();
     let mut sources = BTreeMap::new();
     for (layer, channels) in found {
-        match assemble(layer, channels, w, h) {
-            Ok((img, names, extra)) => {
-                layers.insert(layer, img);
-                sources.insert(layer, names);
-                ignored.extend(extra);
-            }
-            Err(message) => return Err(err(message)),
+        let (chosen, names, extra) = assemble(layer, channels).map_err(err)?;
+        for (plane, &(p, c)) in chosen.iter().enumerate() {
+            targets[p][c] = Some(Target {
+                image: images.len(),
+                plane,
+            });
         }
+        images.push(Image::try_zeros(chosen.len(), w, h)?);
+        order.push(layer);
+        sources.insert(layer, names);
+        ignored.extend(extra);
     }
+    blocks::decode(reader, &targets, &mut images).map_err(|f| fault(f, path))?;
     Ok(RawBundle {
         path: path.to_owned(),
         size: (w, h),
-        layers,
+        layers: order.into_iter().zip(images).collect(),
         sources,
         ignored,
         spp,
         warnings,
     })
+}
+
+/// A channel found for a layer: its full name, its component (upper case), and where it is
+/// stored (part, index in the part's channel list).
+type Stored = (String, String, (usize, usize));
+
+/// One empty slot per stored channel of every part.
+fn channel_slots(meta: &MetaData) -> Vec<Vec<Option<Target>>> {
+    meta.headers
+        .iter()
+        .map(|h| vec![None; h.channels.list.len()])
+        .collect()
+}
+
+fn fault(f: Fault, path: &Path) -> Error {
+    match f {
+        Fault::Exr(e) => exr_error(e, path),
+        Fault::Damaged(m) => Error::Exr {
+            path: path.to_owned(),
+            message: format!("damaged OpenEXR file: {m}"),
+        },
+    }
 }
 
 fn attribute_spp(attrs: &std::collections::HashMap<x::Text, AttributeValue>) -> Option<f32> {
@@ -367,30 +392,21 @@ fn split_name(full: &str) -> Option<(Layer, String)> {
     Some((layer, component.to_ascii_uppercase()))
 }
 
-fn to_f32(samples: &FlatSamples) -> Vec<f32> {
-    match samples {
-        FlatSamples::F16(v) => v.iter().map(|h| h.to_f32()).collect(),
-        FlatSamples::F32(v) => v.clone(),
-        FlatSamples::U32(v) => v.iter().map(|&u| u as f32).collect(),
-    }
-}
-
-type Assembled = (Image, Vec<String>, Vec<String>);
+/// The chosen channels' payloads in component order, their names, the names left over.
+type Assembled<T> = (Vec<T>, Vec<String>, Vec<String>);
 
 /// Picks the layer's components out of the channels found for it. A 3-channel layer may be
 /// stored as RGB or XYZ; depth as `Z`, `Y`, `T` or its only channel.
-fn assemble(
+fn assemble<T: Copy>(
     layer: Layer,
-    mut channels: Vec<(String, String, Vec<f32>)>,
-    w: usize,
-    h: usize,
-) -> Result<Assembled, String> {
+    mut channels: Vec<(String, String, T)>,
+) -> Result<Assembled<T>, String> {
     let wanted: Vec<Vec<&str>> = match layer {
         Layer::Depth => vec![vec!["Z"], vec!["Y"], vec!["T"], vec!["R"]],
         Layer::Normal => vec![vec!["X", "Y", "Z"], vec!["R", "G", "B"]],
         _ => vec![vec!["R", "G", "B"], vec!["X", "Y", "Z"]],
     };
-    let pick = |set: &Vec<&str>, chans: &Vec<(String, String, Vec<f32>)>| -> Option<Vec<usize>> {
+    let pick = |set: &Vec<&str>, chans: &Vec<(String, String, T)>| -> Option<Vec<usize>> {
         set.iter()
             .map(|c| chans.iter().position(|(_, comp, _)| comp == c))
             .collect()
@@ -412,23 +428,15 @@ fn assemble(
             have.join(", ")
         ));
     };
-    let mut img = Image::zeros(indices.len(), w, h);
-    let mut names = Vec::new();
-    for (c, &i) in indices.iter().enumerate() {
-        let (name, _, samples) = &channels[i];
-        img.plane_mut(c)
-            .as_slice_mut()
-            .expect("planes are contiguous")
-            .copy_from_slice(samples);
-        names.push(name.clone());
-    }
+    let chosen = indices.iter().map(|&i| channels[i].2).collect();
+    let names = indices.iter().map(|&i| channels[i].0.clone()).collect();
     let mut sorted = indices.clone();
     sorted.sort_unstable_by(|a, b| b.cmp(a));
     for i in sorted {
         channels.remove(i);
     }
     let extra = channels.into_iter().map(|(n, _, _)| n).collect();
-    Ok((img, names, extra))
+    Ok((chosen, names, extra))
 }
 
 /// Reads an RGB image to evaluate: the plain `R`, `G`, `B` channels of an output file, or else
@@ -450,15 +458,13 @@ fn read_rgb_or_layer(path: &Path, layer: &str) -> Result<Image> {
         source,
     })?;
     let mut reader = BufReader::new(file);
-    check_layout(&mut reader, path)?;
-    let image = decode(reader, path)?;
-    let part = image.layer_data.first().ok_or_else(|| Error::Exr {
+    let meta = check_layout(&mut reader, path)?;
+    let part = meta.headers.first().ok_or_else(|| Error::Exr {
         path: path.to_owned(),
         message: "the file has no image parts".into(),
     })?;
-    let (w, h) = (part.size.0, part.size.1);
-    let find = |prefix: &str| -> Option<Image> {
-        let planes: Option<Vec<Vec<f32>>> = ["R", "G", "B"]
+    let find = |prefix: &str| -> Option<Vec<usize>> {
+        ["R", "G", "B"]
             .iter()
             .map(|c| {
                 let want = if prefix.is_empty() {
@@ -466,48 +472,61 @@ fn read_rgb_or_layer(path: &Path, layer: &str) -> Result<Image> {
                 } else {
                     format!("{prefix}.{c}")
                 };
-                part.channel_data
+                part.channels
                     .list
                     .iter()
-                    .find(|ch| ch.name.to_string().eq_ignore_ascii_case(&want))
-                    .map(|ch| to_f32(&ch.sample_data))
+                    .position(|ch| ch.name.to_string().eq_ignore_ascii_case(&want))
             })
-            .collect();
-        planes.map(|p| Image::from_fn(3, w, h, |(c, x, y)| p[c][y * w + x]))
+            .collect()
     };
-    find("").or_else(|| find(layer)).ok_or_else(|| Error::Exr {
+    let channels = find("").or_else(|| find(layer)).ok_or_else(|| Error::Exr {
         path: path.to_owned(),
         message: format!(
             "no RGB image: expected channels R, G, B or {layer}.R, {layer}.G, {layer}.B"
         ),
-    })
+    })?;
+    let mut targets = channel_slots(&meta);
+    for (plane, c) in channels.into_iter().enumerate() {
+        targets[0][c] = Some(Target { image: 0, plane });
+    }
+    let mut images = [Image::try_zeros(3, part.layer_size.0, part.layer_size.1)?];
+    blocks::decode(reader, &targets, &mut images).map_err(|f| fault(f, path))?;
+    let [image] = images;
+    Ok(image)
 }
 
-fn write_channels(
+/// Writes f32 planes as one scan-line part, ZIP compression, `spp` as an attribute when known.
+fn write_planes(
     path: &Path,
     size: (usize, usize),
-    channels: SmallVec<[x::AnyChannel<FlatSamples>; 4]>,
+    mut channels: Vec<(String, &[f32])>,
     spp: Option<f32>,
 ) -> Result<()> {
-    let layer = x::Layer::new(
-        size,
-        x::LayerAttributes::default(),
-        x::Encoding::SMALL_LOSSLESS,
-        x::AnyChannels::sort(channels),
-    );
-    let mut image = x::Image::from_layer(layer);
+    channels.sort_by(|a, b| a.0.cmp(&b.0));
+    let names: Vec<&str> = channels.iter().map(|(n, _)| n.as_str()).collect();
+    let planes: Vec<&[f32]> = channels.iter().map(|(_, p)| *p).collect();
+    let mut header = blocks::f32_header(&names, size);
     if let Some(s) = spp {
-        image
-            .attributes
+        header
+            .shared_attributes
             .other
             .insert(x::Text::from("spp"), AttributeValue::F32(s));
     }
-    use exr::prelude::WritableImage;
-    image
-        .write()
-        .non_parallel()
-        .to_file(path)
-        .map_err(|e| exr_error(e, path))
+    let io_error = |source| Error::Io {
+        path: path.to_owned(),
+        source,
+    };
+    let file = std::fs::File::create(path).map_err(io_error)?;
+    let mut writer = std::io::BufWriter::new(file);
+    let written = blocks::encode(&mut writer, header, &planes)
+        .map_err(|f| fault(f, path))
+        .and_then(|()| writer.flush().map_err(io_error));
+    if written.is_err() {
+        // Never leave a partial file behind under the name asked for.
+        drop(writer);
+        let _ = std::fs::remove_file(path);
+    }
+    written
 }
 
 /// Writes a reconstruction: plain `R`, `G`, `B` f32 channels, ZIP compression.
@@ -521,27 +540,24 @@ pub fn write_rgb(path: impl AsRef<Path>, image: &Image) -> Result<()> {
     let channels = ["R", "G", "B"]
         .iter()
         .enumerate()
-        .map(|(c, name)| {
-            x::AnyChannel::new(
-                *name,
-                FlatSamples::F32(image.plane(c).iter().copied().collect()),
-            )
-        })
+        .map(|(c, name)| (name.to_string(), plane(image, c)))
         .collect();
-    write_channels(path.as_ref(), image.size(), channels, None)
+    write_planes(path.as_ref(), image.size(), channels, None)
+}
+
+fn plane(image: &Image, c: usize) -> &[f32] {
+    let len = image.width() * image.height();
+    &image.as_slice()[c * len..(c + 1) * len]
 }
 
 /// Writes every layer of `frame` as a bundle (f32, ZIP, `spp` attribute when known).
 pub fn write_bundle(path: impl AsRef<Path>, frame: &Frame) -> Result<()> {
-    let mut channels = SmallVec::new();
+    let mut channels = Vec::new();
     for layer in frame.present_layers() {
         let img = frame.layer(layer).expect("present");
         for (c, comp) in layer.components().iter().enumerate() {
-            channels.push(x::AnyChannel::new(
-                format!("{layer}.{comp}").as_str(),
-                FlatSamples::F32(img.plane(c).iter().copied().collect()),
-            ));
+            channels.push((format!("{layer}.{comp}"), plane(img, c)));
         }
     }
-    write_channels(path.as_ref(), frame.size(), channels, frame.spp())
+    write_planes(path.as_ref(), frame.size(), channels, frame.spp())
 }

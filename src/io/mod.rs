@@ -1,5 +1,6 @@
 //! Reading frame bundles and writing results: OpenEXR in and out, PNG previews.
 
+mod blocks;
 mod chunks;
 pub mod exr;
 pub mod png;

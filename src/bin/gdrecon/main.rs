@@ -252,9 +252,6 @@ fn reconstruct(args: ReconstructArgs) -> gdrecon::Result<()> {
     } else {
         Policy::Replace
     };
-    let t0 = Instant::now();
-    let frame = load_frame(&args.input, policy, args.spp)?;
-    let read_time = t0.elapsed();
     let config = args.method.config()?;
     let context = Context::new(
         args.method
@@ -262,12 +259,18 @@ fn reconstruct(args: ReconstructArgs) -> gdrecon::Result<()> {
             .context(args.threads)
             .with_max_memory_mb(args.max_memory_mb),
     )?;
+    // Reading and writing decompress and compress blocks on the context's threads.
+    let t0 = Instant::now();
+    let frame = context.install(|| load_frame(&args.input, policy, args.spp))?;
+    let read_time = t0.elapsed();
     let mut plan = Plan::new(&context, &config, frame.width(), frame.height())?;
     let bar = bar::DelayedBar::new(args.quiet);
     let callback = |f: f64| bar.update(f);
     let (image, report) = plan.execute(&frame, &gdrecon::Progress::new(&callback))?;
     bar.finish();
-    io::write_rgb(&args.output, &image)?;
+    let t1 = Instant::now();
+    context.install(|| io::write_rgb(&args.output, &image))?;
+    let write_time = t1.elapsed();
     if let Some(png) = &args.png {
         io::write_png(png, &image, args.exposure)?;
     }
@@ -291,7 +294,11 @@ fn reconstruct(args: ReconstructArgs) -> gdrecon::Result<()> {
         say!("base     {base}");
         say!("{:<8} {out}", config.method().name());
     }
-    say!("wrote {}", args.output.display());
+    say!(
+        "wrote {} in {:.3} s",
+        args.output.display(),
+        write_time.as_secs_f64()
+    );
     Ok(())
 }
 
