@@ -48,7 +48,7 @@ fn sweep_writes_every_report_file() {
     assert_eq!(
         lines.next().unwrap(),
         "scene,spp,method,setting,scale,width,height,pixels,threads,runs,median_s,min_s,max_s,\
-         rel_mse,peak_rss_mib,stages"
+         rel_mse,peak_rss_mib,stages,oidn_s"
     );
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     let variants: Vec<(&str, &str)> = rows.iter().map(|r| (r[2], r[3])).collect();
@@ -69,7 +69,8 @@ fn sweep_writes_every_report_file() {
     .collect();
     assert_eq!(variants, expected);
     for r in &rows {
-        assert_eq!(r.len(), 16, "{r:?}");
+        assert_eq!(r.len(), 17, "{r:?}");
+        assert_eq!(r[16], "", "OIDN was not timed alongside: {r:?}");
         // Stage medians: l2 times its right-hand side and its DCT solve.
         if r[2] == "l2" && r[3] == "default" {
             assert!(
@@ -227,6 +228,18 @@ fn against_oidn_reports_every_time_as_a_multiple_of_oidn() {
         .map(|l| l.split(',').nth(2).unwrap())
         .collect();
     assert_eq!(methods, ["prior", "l2", "l1"], "OIDN is timed first");
+    // Then once before each run of every other variant: its median is on that variant's row,
+    // and the ratio divides by it.
+    let rows: Vec<Vec<&str>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect())
+        .collect();
+    assert_eq!(rows[0][16], "", "OIDN's own row");
+    for r in &rows[1..] {
+        let oidn: f64 = r[16].parse().unwrap_or_else(|_| panic!("no oidn_s: {r:?}"));
+        assert!(oidn > 0.0, "{r:?}");
+    }
     assert!(
         console.contains("time against OIDN in this run"),
         "{console}"
@@ -244,6 +257,12 @@ fn against_oidn_reports_every_time_as_a_multiple_of_oidn() {
             .unwrap()
     };
     assert_eq!(ratio("prior"), 1.0);
+    let l1 = &rows[2];
+    let expected = l1[10].parse::<f64>().unwrap() / l1[16].parse::<f64>().unwrap();
+    assert!(
+        (ratio("l1") - expected).abs() <= 5e-4 + 1e-3 * expected,
+        "{expected}"
+    );
     assert!(ratio("l2") > 0.0 && ratio("l2") < ratio("l1"));
     let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
     assert!(summary.contains("| x OIDN (this run) |"), "{summary}");

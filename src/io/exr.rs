@@ -6,8 +6,9 @@
 //! components matched case-insensitively; layer aliases seen in the wild accepted
 //! ([`LAYER_ALIASES`]); unknown channels ignored and listed. The data window is the image: a
 //! window offset from the display window is read as is, and parts whose windows disagree are
-//! an error. Decoding runs single-threaded (`non_parallel`): the crate would otherwise build a
-//! thread pool per call, and callers own the threads.
+//! an error. Blocks are decoded and encoded by [`super::blocks`]: in parallel inside a rayon pool
+//! (the CLI reads and writes inside its [`crate::Context::install`]), on the calling thread
+//! otherwise, since callers own the threads.
 
 use std::collections::BTreeMap;
 use std::io::{BufReader, Cursor, Read, Seek, SeekFrom, Write};

@@ -39,16 +39,20 @@ pub struct Panel {
 pub const OIDN: &str = "prior";
 
 /// The median over `of`'s frames (and scales) of its seconds over OIDN's on the same frame
-/// and scale in `all`; `None` when OIDN was not timed on any of them, or `of` is a baseline.
+/// and scale: OIDN's runs interleaved with the row's (`Row::oidn_s`) when there are any, else
+/// OIDN's own row in `all`; `None` when OIDN was not timed on any of them, or `of` is a
+/// baseline.
 pub fn times_oidn(of: &[&Row], all: &[Row]) -> Option<f64> {
     let mut ratios: Vec<f64> = of
         .iter()
         .filter(|r| r.method != super::baseline::METHOD)
         .filter_map(|r| {
-            let oidn = all
-                .iter()
-                .find(|o| o.variant == OIDN && o.frame == r.frame && o.scale == r.scale)?;
-            (oidn.median_s > 0.0).then(|| r.median_s / oidn.median_s)
+            let oidn = r.oidn_s.or_else(|| {
+                all.iter()
+                    .find(|o| o.variant == OIDN && o.frame == r.frame && o.scale == r.scale)
+                    .map(|o| o.median_s)
+            })?;
+            (oidn > 0.0).then(|| r.median_s / oidn)
         })
         .collect();
     ratios.sort_by(f64::total_cmp);

@@ -87,6 +87,7 @@ fn row(
         rel_mse: Some(rel_mse),
         peak_rss_mib: None,
         stages: Vec::new(),
+        oidn_s: None,
     })
 }
 

@@ -44,6 +44,9 @@ pub struct Row {
     pub peak_rss_mib: Option<f64>,
     /// Median seconds of each stage the method's report times, in execution order.
     pub stages: StageMedians,
+    /// Median seconds of Open Image Denoise on the same frame, run alternately with this
+    /// variant (`bench --against-oidn`), so that both medians saw the same load.
+    pub oidn_s: Option<f64>,
 }
 
 /// `(stage name, median seconds)` in execution order.
@@ -65,12 +68,15 @@ pub struct Schedule {
     pub runs: usize,
 }
 
-/// Plans `variant` once per frame size (not timed) and times it on every frame.
+/// Plans `variant` once per frame size (not timed) and times it on every frame. With `oidn`
+/// (Open Image Denoise's variant), a plan of it runs before each run of `variant`, timed too
+/// (`Row::oidn_s`); the row's peak memory then includes OIDN's plan.
 ///
 /// `on_row` receives each row as soon as it is measured (for live printing).
 pub fn time_variant(
     context: &Context,
     variant: &Variant,
+    oidn: Option<&Variant>,
     frames: &[BenchFrame],
     schedule: Schedule,
     on_row: &mut dyn FnMut(&Row),
@@ -79,15 +85,20 @@ pub fn time_variant(
     let mut rows = Vec::with_capacity(frames.len());
     for size in distinct_sizes(frames) {
         let mut plan = Plan::new(context, &variant.config, size.0, size.1)?;
+        let mut oidn = oidn
+            .map(|o| Plan::new(context, &o.config, size.0, size.1))
+            .transpose()?;
         let mut out = Image::zeros(3, size.0, size.1);
         for f in frames.iter().filter(|f| f.frame.size() == size) {
-            let (times, stages) = time_runs(&mut plan, f, &mut out, schedule)?;
+            let (times, stages, oidn_s) =
+                time_runs(&mut plan, oidn.as_mut(), f, &mut out, schedule)?;
             let rel_mse = match (f.frame.reference(), f.scale == 1.0) {
                 (Some(r), true) => Some(metrics::compare(&out, r)?.rel_mse),
                 _ => None,
             };
             let mut row = make_row(variant, f, context.threads(), &times, rel_mse);
             row.stages = stages;
+            row.oidn_s = oidn_s;
             on_row(&row);
             rows.push(row);
         }
@@ -106,19 +117,30 @@ fn distinct_sizes(frames: &[BenchFrame]) -> Vec<(usize, usize)> {
     sizes
 }
 
-/// Warm-up runs, then the timed runs' seconds, sorted, and the median of each stage.
+/// Warm-up runs, then the timed runs' seconds, sorted, the median of each stage, and the
+/// median of `oidn`'s runs, one before each timed run.
 fn time_runs(
     plan: &mut Plan,
+    mut oidn: Option<&mut Plan>,
     f: &BenchFrame,
     out: &mut Image,
     schedule: Schedule,
-) -> gdrecon::Result<(Vec<f64>, StageMedians)> {
+) -> gdrecon::Result<(Vec<f64>, StageMedians, Option<f64>)> {
     for _ in 0..schedule.warmup {
+        if let Some(o) = oidn.as_deref_mut() {
+            o.execute_into(&f.frame, out, &Progress::none())?;
+        }
         plan.execute_into(&f.frame, out, &Progress::none())?;
     }
     let mut times = Vec::with_capacity(schedule.runs);
+    let mut oidn_times = Vec::with_capacity(schedule.runs);
     let mut stages: Vec<(String, Vec<f64>)> = Vec::new();
     for _ in 0..schedule.runs {
+        if let Some(o) = oidn.as_deref_mut() {
+            let t = Instant::now();
+            o.execute_into(&f.frame, out, &Progress::none())?;
+            oidn_times.push(t.elapsed().as_secs_f64());
+        }
         let t = Instant::now();
         let report = plan.execute_into(&f.frame, out, &Progress::none())?;
         times.push(t.elapsed().as_secs_f64());
@@ -131,6 +153,8 @@ fn time_runs(
         }
     }
     times.sort_by(f64::total_cmp);
+    oidn_times.sort_by(f64::total_cmp);
+    let oidn_s = (!oidn_times.is_empty()).then(|| median(&oidn_times));
     let stages = stages
         .into_iter()
         .map(|(name, mut v)| {
@@ -138,7 +162,7 @@ fn time_runs(
             (name, median(&v))
         })
         .collect();
-    Ok((times, stages))
+    Ok((times, stages, oidn_s))
 }
 
 /// A report row from sorted run times.
@@ -167,6 +191,7 @@ fn make_row(
         rel_mse,
         peak_rss_mib: peak_rss_mib(),
         stages: Vec::new(),
+        oidn_s: None,
     }
 }
 

@@ -80,10 +80,12 @@ pub struct BenchArgs {
     /// `python -m gdrecon_py.oidn <folder>`); their seconds are OIDN's own, not timed here.
     #[arg(long)]
     baselines: bool,
-    /// Also time Intel Open Image Denoise on every frame in this run (the variant `prior`,
-    /// timed first; the library's own OIDN, or the frame's prior layer) and report every
-    /// variant's time as a multiple of it ("x OIDN": per frame, then the median), so that
-    /// speed is quoted against the denoiser on the same machine and load.
+    /// Also time Intel Open Image Denoise on every frame in this run (the variant `prior`: the
+    /// library's own OIDN, or the frame's prior layer), alone first, then once before each
+    /// run of every other variant, and report every variant's time as a multiple of OIDN's
+    /// runs interleaved with its own ("x OIDN": per frame, then the median; column `oidn_s`),
+    /// so that speed is quoted against the denoiser under the same load. Peaks then include
+    /// OIDN's plan.
     #[arg(long)]
     against_oidn: bool,
     /// Heading of summary.md.
@@ -124,7 +126,14 @@ pub fn run(args: BenchArgs) -> gdrecon::Result<()> {
     };
     let load_before = summary::load_average();
     print_header();
-    let mut rows = time_all(&context, &variants, &frames, &scales, schedule)?;
+    let mut rows = time_all(
+        &context,
+        &variants,
+        &frames,
+        &scales,
+        schedule,
+        args.against_oidn,
+    )?;
     if args.against_oidn {
         print_against_oidn(&rows);
     }
@@ -204,6 +213,7 @@ fn time_all(
     frames: &[BenchFrame],
     scales: &[f64],
     schedule: Schedule,
+    against_oidn: bool,
 ) -> gdrecon::Result<Vec<Row>> {
     let mut rows = Vec::new();
     for &scale in scales {
@@ -218,10 +228,17 @@ fn time_all(
             )
         };
         let set = resized.as_deref().unwrap_or(frames);
+        // With --against-oidn, OIDN is the first variant: timed alone, then alternately with
+        // every other one.
+        let oidn = variants
+            .first()
+            .filter(|v| against_oidn && v.label() == aggregate::OIDN);
         for v in variants {
+            let alongside = oidn.filter(|o| !std::ptr::eq(*o, v));
             rows.extend(measure::time_variant(
                 context,
                 v,
+                alongside,
                 set,
                 schedule,
                 &mut print_row,

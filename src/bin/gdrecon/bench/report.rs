@@ -6,7 +6,7 @@ use std::path::Path;
 use super::measure::Row;
 
 /// The columns of `results.csv` and the keys of `results.json`, in order.
-pub const COLUMNS: [&str; 16] = [
+pub const COLUMNS: [&str; 17] = [
     "scene",
     "spp",
     "method",
@@ -23,6 +23,7 @@ pub const COLUMNS: [&str; 16] = [
     "rel_mse",
     "peak_rss_mib",
     "stages",
+    "oidn_s",
 ];
 
 /// A value of one column, as text for CSV and as a JSON literal.
@@ -33,7 +34,7 @@ enum Value {
 }
 
 /// The row's values in [`COLUMNS`] order.
-fn values(r: &Row) -> [Value; 16] {
+fn values(r: &Row) -> [Value; 17] {
     use Value::{Number as N, Text as T};
     let opt = |v: Option<String>| v.map_or(Value::Missing, N);
     [
@@ -58,6 +59,8 @@ fn values(r: &Row) -> [Value; 16] {
             .map(|(name, s)| format!("{name}={s:.6}"))
             .collect::<Vec<_>>()
             .join(";")),
+        // OIDN's median when timed alternately with this row (`--against-oidn`).
+        opt(r.oidn_s.map(|v| format!("{v:.6}"))),
     ]
 }
 
