@@ -128,7 +128,8 @@ fn tiles_match_the_untiled_run() {
     let mut whole = GradNetConfig::default();
     whole.tile_size = 0;
     let mut tiled = GradNetConfig::default();
-    tiled.tile_size = 232; // 320 x 184 padded is more than 232²: 4 tiles of 232 x 184
+    tiled.whole_pixels = 0;
+    tiled.tile_size = 232; // 320 x 184 padded: 4 tiles of 232 x 184
     let mut plan = Plan::new(&context(), &MethodConfig::GradNet(tiled), 320, 180).unwrap();
     let (got, report) = plan.execute(&frame, &Progress::none()).unwrap();
     assert!(
@@ -257,9 +258,10 @@ fn model_errors_are_distinct() {
     let mut c = GradNetConfig::default();
     c.tile_size = 100;
     let small = run(&crop("crop_a"), c);
-    assert!(small.is_ok(), "a frame smaller than the tile is one tile");
+    assert!(small.is_ok(), "a frame within whole_pixels is one tile");
     let big = sample();
     let mut c = GradNetConfig::default();
+    c.whole_pixels = 0;
     c.tile_size = 100;
     let err = run(&big, c).unwrap_err();
     assert!(matches!(err, Error::InvalidArgument(_)), "{err}");

@@ -144,6 +144,7 @@ fn filter_without_features_skips_their_terms_and_prefilter() {
 fn gradnet_skips_empty_tiles() {
     let frame = half_empty(640);
     let mut config = GradNetConfig::default();
+    config.whole_pixels = 0;
     config.tile_size = 256;
     let (out, report) = run(&frame, MethodConfig::GradNet(config));
     let note = skipped(&report, "no radiance and no gradient");
@@ -223,6 +224,7 @@ fn filter_keeps_converged_pixels() {
 fn gradnet_keeps_converged_tiles() {
     let frame = half_converged();
     let mut config = GradNetConfig::default();
+    config.whole_pixels = 0;
     config.tile_size = 232;
     let (out, report) = run(&frame, MethodConfig::GradNet(config));
     let note = skipped(&report, "converged");

@@ -49,7 +49,10 @@ pub struct GradNetConfig {
     pub runtime: Option<PathBuf>,
     /// Use albedo, normal and depth when the frame has them (the full model).
     pub use_features: bool,
-    /// Tile side in pixels; `0` never tiles.
+    /// Frames of at most this many pixels (after padding) run whole, as one tile; larger
+    /// ones run in tiles of `tile_size`.
+    pub whole_pixels: usize,
+    /// Tile side in pixels for frames larger than `whole_pixels`; `0` never tiles.
     pub tile_size: usize,
     /// Apply the release's Gaussian bias correction.
     pub bias_correction: bool,
@@ -68,6 +71,7 @@ impl Default for GradNetConfig {
             model: None,
             runtime: None,
             use_features: true,
+            whole_pixels: DEFAULT_WHOLE,
             tile_size: DEFAULT_TILE,
             bias_correction: true,
             range_limit: 2.0,
@@ -75,19 +79,33 @@ impl Default for GradNetConfig {
     }
 }
 
-/// Default [`GradNetConfig::tile_size`]: 1280 x 720 runs as one tile; 4K as 15 tiles of
-/// 1024 x 1024, under 1.5 GB.
-pub const DEFAULT_TILE: usize = 1024;
+/// Default [`GradNetConfig::whole_pixels`]: 2^20, so 1280 x 720 runs whole (the fastest and
+/// most exact run: no overlap) and 1920 x 1080 in tiles.
+pub const DEFAULT_WHOLE: usize = 1 << 20;
+
+/// Default [`GradNetConfig::tile_size`]: 3840 x 2160 runs in 45 tiles of 640 x 640 with a
+/// peak under 1.5 GB for the whole CLI, 22-channel bundle included (tiles of 1024: 1.9 GB;
+/// docs/gradnet.md, "Speed and memory").
+pub const DEFAULT_TILE: usize = 640;
 
 impl Params for GradNetConfig {
     const TABLE: &'static [Param<Self>] = &[
         Param::int(
+            "whole_pixels",
+            0,
+            i32::MAX as i64,
+            "Frames of at most this many pixels (after padding to a multiple of 8) run whole, \
+             as one tile (fastest, no overlap); larger ones run in tiles of tile_size",
+            |c| c.whole_pixels as i64,
+            |c, v| c.whole_pixels = v as usize,
+        ),
+        Param::int(
             "tile_size",
             0,
             1 << 16,
-            "Tile side in pixels (after padding to a multiple of 8): larger frames run in \
-             overlapping square tiles of this side, bounding the network's memory; 0 never \
-             tiles; otherwise at least 208",
+            "Tile side in pixels (after padding to a multiple of 8) for frames larger than \
+             whole_pixels: overlapping square tiles of this side bound the network's memory; \
+             0 never tiles; otherwise at least 208",
             |c| c.tile_size as i64,
             |c, v| c.tile_size = v as usize,
         ),
@@ -161,9 +179,18 @@ impl Register for GradNetConfig {
     /// | 1280 x 720 | 986816 KiB | 180216 KiB | 788 MiB |
     ///
     /// The slope is 756 B a pixel and the intercept 123 MiB (the session, its weights); the
-    /// estimate takes 850 B a pixel and 192 MiB.
+    /// estimate takes 850 B a pixel and 192 MiB for a frame run whole. A tiled frame takes
+    /// that for one tile, plus 64 B a pixel of the frame for what is frame-sized (the output,
+    /// the bias correction's planes, the masks): at 3840 x 2160 in tiles of 640 the estimate
+    /// is 1.08 GB, where the CLI's peak less `info`'s was 0.77 GB.
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
-        super::bytes_for(width, height, 850, 192 * super::MIB)
+        let whole = self.tile_size == 0 || width.saturating_mul(height) <= self.whole_pixels;
+        if whole {
+            super::bytes_for(width, height, 850, 192 * super::MIB)
+        } else {
+            super::bytes_for(self.tile_size, self.tile_size, 850, 192 * super::MIB)
+                .saturating_add(super::bytes_for(width, height, 64, 0))
+        }
     }
 }
 
@@ -227,7 +254,12 @@ mod enabled {
             height: usize,
         ) -> Result<Self> {
             let map = FrameMap::new(width, height);
-            let tiles = tiles::layout(map.x.padded_len(), map.y.padded_len(), config.tile_size)?;
+            let tiles = tiles::layout(
+                map.x.padded_len(),
+                map.y.padded_len(),
+                config.whole_pixels,
+                config.tile_size,
+            )?;
             let (th, tw) = (tiles[0].y.size, tiles[0].x.size);
             let runtime = runtime::runtime(config.runtime.as_deref())?;
             let mut plan = GradNet {

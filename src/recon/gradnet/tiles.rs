@@ -84,12 +84,11 @@ pub(crate) struct Tile {
     pub x: Span,
 }
 
-/// Tiles covering a padded `width x height` frame with at most `max * max` pixels each
-/// (`max == 0`: one tile). A frame within that budget is one tile, whatever its shape (1280 x
-/// 720 under the default 1024: the cheapest and most exact run); a larger one is split into
-/// square tiles of side `max`.
-pub(crate) fn layout(width: usize, height: usize, max: usize) -> Result<Vec<Tile>> {
-    let max = if max == 0 || width.saturating_mul(height) <= max.saturating_mul(max) {
+/// Tiles covering a padded `width x height` frame: one tile when the frame has at most
+/// `whole` pixels or `max == 0`, whatever its shape (1280 x 720 under the default 2^20: the
+/// cheapest and most exact run); square tiles of side `max` otherwise.
+pub(crate) fn layout(width: usize, height: usize, whole: usize, max: usize) -> Result<Vec<Tile>> {
+    let max = if max == 0 || width.saturating_mul(height) <= whole {
         usize::MAX
     } else {
         max
@@ -138,16 +137,20 @@ mod tests {
 
     #[test]
     fn small_frames_are_one_tile_and_small_tiles_are_refused() {
-        assert_eq!(layout(720, 1280, 0).unwrap().len(), 1);
-        assert_eq!(layout(1280, 720, 1280).unwrap().len(), 1);
-        // Within the pixel budget: one tile even though 1280 > 1024.
-        assert_eq!(layout(1280, 720, 1024).unwrap().len(), 1);
-        assert_eq!(layout(8192, 8, 1024).unwrap().len(), 1);
-        // 4K: square tiles of 1024.
-        let k4 = layout(3840, 2160, 1024).unwrap();
-        assert!(k4.iter().all(|t| t.x.size == 1024 && t.y.size == 1024));
-        assert_eq!(k4.len(), 5 * 3);
-        let err = layout(1024, 1024, 100).unwrap_err().to_string();
+        let whole = 1 << 20;
+        assert_eq!(layout(720, 1280, 0, 0).unwrap().len(), 1);
+        assert_eq!(layout(1280, 720, 0, 1280).unwrap().len(), 1);
+        // Within the pixel budget: one tile even though 1280 > 640.
+        assert_eq!(layout(1280, 720, whole, 640).unwrap().len(), 1);
+        assert_eq!(layout(8192, 8, whole, 640).unwrap().len(), 1);
+        // Over it: tiles, even for a frame smaller than a tile's area.
+        assert_eq!(layout(1280, 720, 1280 * 720 - 1, 1024).unwrap().len(), 2);
+        // 4K: square tiles of 640, and of 1024.
+        let k4 = layout(3840, 2160, whole, 640).unwrap();
+        assert!(k4.iter().all(|t| t.x.size == 640 && t.y.size == 640));
+        assert_eq!(k4.len(), 9 * 5);
+        assert_eq!(layout(3840, 2160, whole, 1024).unwrap().len(), 5 * 3);
+        let err = layout(1024, 1024, 0, 100).unwrap_err().to_string();
         assert!(err.contains("too small"), "{err}");
     }
 }
