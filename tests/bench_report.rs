@@ -268,3 +268,45 @@ fn against_oidn_reports_every_time_as_a_multiple_of_oidn() {
     assert!(summary.contains("| x OIDN (this run) |"), "{summary}");
     assert!(summary.contains("| `prior` |"), "{summary}");
 }
+
+/// `--scales` adds the scaling table (seconds per size, the exponent) and its plot.
+#[test]
+fn scales_write_the_scaling_table_and_plot() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("report");
+    let output = gdrecon()
+        .args([
+            "bench",
+            "--synthetic",
+            "64x48",
+            "--methods",
+            "l2",
+            "--scales",
+            "0.5,1,2",
+            "--runs",
+            "1",
+            "--warmup",
+            "0",
+            "--out-dir",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    let row = summary
+        .lines()
+        .find(|l| l.starts_with("| `l2` | synthetic"))
+        .unwrap_or_else(|| panic!("no scaling row:\n{summary}"));
+    for size in ["32 x 24", "64 x 48", "128 x 96"] {
+        assert!(row.contains(size), "{row}");
+    }
+    let png = std::fs::read(out.join("scaling.png")).unwrap();
+    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+    let svg = std::fs::read_to_string(out.join("scaling.svg")).unwrap();
+    assert!(svg.contains("<svg") && svg.contains("pixels per frame"));
+}

@@ -328,9 +328,23 @@ fn write_report(dir: &Path, header: &summary::Header, rows: &[Row]) -> gdrecon::
         })
         .collect();
     plot::write(&dir.join("pareto.png"), &dir.join("pareto.svg"), &ours)?;
+    let timed: Vec<Row> = rows
+        .iter()
+        .filter(|r| r.method != baseline::METHOD)
+        .cloned()
+        .collect();
+    let scaled = timed.iter().any(|r| r.scale != 1.0);
+    if scaled {
+        plot::write_scaling(&dir.join("scaling.png"), &dir.join("scaling.svg"), &timed)?;
+    }
     say!(
-        "wrote {}/{{results.csv, results.json, summary.md, pareto.png, pareto.svg}}",
-        dir.display()
+        "wrote {}/{{results.csv, results.json, summary.md, pareto.png, pareto.svg{}}}",
+        dir.display(),
+        if scaled {
+            ", scaling.png, scaling.svg"
+        } else {
+            ""
+        }
     );
     Ok(())
 }

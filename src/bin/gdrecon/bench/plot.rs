@@ -1,4 +1,6 @@
-//! `pareto.png` and `pareto.svg`: relMSE against median seconds, log-log, one panel per spp.
+//! `pareto.png` and `pareto.svg`: relMSE against median seconds, log-log, one panel per spp;
+//! `scaling.png` and `scaling.svg` (with `--scales`): median seconds against pixels, log-log,
+//! one line per variant and frame.
 //!
 //! Text is drawn with DejaVu Sans compiled into the binary (plotters' `ab_glyph` path), so
 //! neither system fonts nor fontconfig are needed. The PNG is rendered into a buffer and
@@ -13,6 +15,7 @@ use plotters::prelude::*;
 use plotters::style::{register_font, FontStyle};
 
 use super::aggregate::{Panel, Point};
+use super::measure::Row;
 
 /// Pixels per panel.
 const PANEL_WIDTH: u32 = 560;
@@ -42,6 +45,97 @@ pub fn write(png: &Path, svg: &Path, panels: &[Panel]) -> gdrecon::Result<()> {
         draw(&root, panels).map_err(|e| plot_error(svg, e.to_string()))?;
     }
     super::report::write(svg, &text)
+}
+
+/// One line of the scaling plot: variant, method, (pixels, seconds) by increasing size.
+type Line = (String, String, Vec<(f64, f64)>);
+
+/// Writes the scaling plot to `png` and `svg`: every (variant, frame) of `rows` timed at two
+/// or more sizes.
+pub fn write_scaling(png: &Path, svg: &Path, rows: &[Row]) -> gdrecon::Result<()> {
+    register_dejavu().map_err(|e| plot_error(png, e))?;
+    let lines: Vec<Line> = super::summary::groups(rows)
+        .into_iter()
+        .filter_map(|(variant, frame)| {
+            let of: Vec<&Row> = rows
+                .iter()
+                .filter(|r| r.variant == variant && r.frame == frame)
+                .collect();
+            let mut points: Vec<(f64, f64)> =
+                of.iter().map(|r| (r.pixels() as f64, r.median_s)).collect();
+            points.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let method = of.first()?.method.clone();
+            (points.len() >= 2).then_some((variant, method, points))
+        })
+        .collect();
+    let size = (PANEL_WIDTH + 360, PANEL_HEIGHT + 60);
+    let mut pixels = vec![0u8; size.0 as usize * size.1 as usize * 3];
+    {
+        let root = BitMapBackend::with_buffer(&mut pixels, size).into_drawing_area();
+        draw_scaling(&root, &lines).map_err(|e| plot_error(png, e.to_string()))?;
+    }
+    encode_png(png, &pixels, size)?;
+    let mut text = String::new();
+    {
+        let root = SVGBackend::with_string(&mut text, size).into_drawing_area();
+        draw_scaling(&root, &lines).map_err(|e| plot_error(svg, e.to_string()))?;
+    }
+    super::report::write(svg, &text)
+}
+
+/// Seconds against pixels, one coloured line per variant, labelled at its largest size.
+fn draw_scaling<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    lines: &[Line],
+) -> DrawResult<DB> {
+    root.fill(&WHITE)?;
+    let all = || lines.iter().flat_map(|l| l.2.iter().copied());
+    let (x0, x1) = log_bounds(all().map(|p| p.0));
+    let (y0, y1) = log_bounds(all().map(|p| p.1));
+    let mut chart = ChartBuilder::on(root)
+        .caption("time against frame size", (FONT, 20))
+        .margin(14)
+        .x_label_area_size(44)
+        .y_label_area_size(64)
+        .build_cartesian_2d(
+            (x0..x1 * 3.0)
+                .log_scale()
+                .with_key_points(key_points(x0, x1 * 3.0)),
+            (y0..y1).log_scale().with_key_points(key_points(y0, y1)),
+        )?;
+    chart
+        .configure_mesh()
+        .x_desc("pixels per frame")
+        .y_desc("median seconds per frame")
+        .x_label_formatter(&|v| format!("{v:.0e}"))
+        .y_label_formatter(&|v| tick(*v))
+        .label_style((FONT, 12))
+        .axis_desc_style((FONT, 14))
+        .light_line_style(WHITE)
+        .draw()?;
+    for (variant, method, points) in lines {
+        let color = method_color(method);
+        chart.draw_series(LineSeries::new(
+            points.iter().copied(),
+            color.stroke_width(2),
+        ))?;
+        chart.draw_series(points.iter().map(|&p| Circle::new(p, 4, color.filled())))?;
+        if let Some(&last) = points.last() {
+            chart.draw_series(std::iter::once(
+                EmptyElement::at(last) + Text::new(label(variant), (8, -6), (FONT, 12)),
+            ))?;
+        }
+    }
+    root.present()
+}
+
+/// A variant's label, OIDN named as such.
+fn label(variant: &str) -> String {
+    if variant == super::aggregate::OIDN {
+        format!("{variant} (OIDN)")
+    } else {
+        variant.to_owned()
+    }
 }
 
 /// A plotting failure as an error naming the file.

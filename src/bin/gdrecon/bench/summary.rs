@@ -191,8 +191,10 @@ fn scaling_table(out: &mut String, rows: &[Row]) {
     let _ = writeln!(
         out,
         "## Resolution scaling\n\nFrames resized nearest-neighbour (gradients re-derived from \
-         the source gradients, noise kept); cells: median seconds (nanoseconds per pixel). `k` \
-         fits seconds ~ pixels^k over the scales timed.\n"
+         the source gradients, noise kept); cells: median seconds (nanoseconds per pixel), and \
+         with `--against-oidn` the time as a multiple of OIDN's runs interleaved with it \
+         (OIDN itself is the variant `prior`). `k` fits seconds ~ pixels^k over the scales \
+         timed; `scaling.png` plots the same.\n"
     );
     let head: Vec<String> = scales.iter().map(|s| format!("{s}x")).collect();
     let _ = writeln!(
@@ -210,11 +212,14 @@ fn scaling_table(out: &mut String, rows: &[Row]) {
             .iter()
             .map(|s| match of.iter().find(|r| r.scale == *s) {
                 Some(r) => format!(
-                    "{} x {}: {} ({:.0})",
+                    "{} x {}: {} ({:.0}){}",
                     r.width,
                     r.height,
                     seconds(r.median_s),
-                    r.median_s * 1e9 / r.pixels() as f64
+                    r.median_s * 1e9 / r.pixels() as f64,
+                    r.oidn_s
+                        .filter(|o| *o > 0.0)
+                        .map_or_else(String::new, |o| format!(", {:.2}x OIDN", r.median_s / o))
                 ),
                 None => "-".to_owned(),
             })
@@ -230,7 +235,7 @@ fn scaling_table(out: &mut String, rows: &[Row]) {
 }
 
 /// Distinct (variant, frame) pairs in first-seen order.
-fn groups(rows: &[Row]) -> Vec<(String, String)> {
+pub fn groups(rows: &[Row]) -> Vec<(String, String)> {
     let mut seen: Vec<(String, String)> = Vec::new();
     for r in rows {
         let key = (r.variant.clone(), r.frame.clone());
