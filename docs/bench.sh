@@ -52,10 +52,10 @@ cargo build --release --locked --bin gdrecon
 bin="$target/release/gdrecon"
 start=$SECONDS
 
-echo "== 0/4 OIDN outputs for the baselines (skipped where they exist)"
+echo "== 0/3 OIDN outputs for the baselines (skipped where they exist)"
 "$GDRECON_PYTHON" -m gdrecon_py.oidn "$data/val" "$data/test"
 
-echo "== 1/4 validation and test splits: every method, the prior paths, the baselines, runs 3 (about 16 minutes)"
+echo "== 1/3 validation and test splits: every method, the prior paths, the baselines, runs 3 (about 16 minutes)"
 for split in val test; do
   declare -n set="$split"
   "$bin" bench "${set[@]}" \
@@ -66,23 +66,18 @@ for split in val test; do
 done
 cp "$out/val/summary.md" "$out/summary.md"
 
-echo "== 2/4 1280 x 720: every method and the prior paths, runs 5 (about 9 minutes, frgr most of it)"
+echo "== 2/3 1280 x 720: every method and the prior paths, runs 5 (about 9 minutes, frgr most of it)"
 "$bin" bench "${hd[@]}" --settings l2,l1,frgr,gradnet,l1:prior --against-oidn --runs 5 --warmup 1 \
   "${threads[@]}" --out-dir "$out/720p" \
   --title "1280 x 720, 16 spp, 256 spp references"
 
-echo "== 3/4 scaling: l2, l1, gradnet at 0.5, 1, 2 x of cornell 720p, runs 5"
-"$bin" bench "${hd[0]}" --methods l2,l1,gradnet --scales 0.5,1,2 --runs 5 --warmup 1 \
-  "${threads[@]}" --out-dir "$out/scaling" \
-  --title "Resolution scaling: l2, l1, gradnet (cornell, 720p = 1x)"
-
-echo "== 4/4 scaling: frgr at 0.5, 1 x of cornell 720p, runs 1 (it needs ~35 s per 720p frame)"
-"$bin" bench "${hd[0]}" --methods frgr --scales 0.5,1 --runs 1 --warmup 0 \
-  "${threads[@]}" --out-dir "$out/scaling-filter" \
-  --title "Resolution scaling: frgr (cornell, 720p = 1x, one run, no warm-up)"
+echo "== 3/3 scaling against OIDN: l2, l1, l1:prior, frgr, gradnet at 0.5, 1, 2 x of cornell 720p, runs 3 (about 10 minutes)"
+"$bin" bench "${hd[0]}" --settings l2,l1,l1:prior,frgr,gradnet --scales 0.5,1,2 --against-oidn \
+  --runs 3 --warmup 1 "${threads[@]}" --out-dir "$out/scaling" \
+  --title "Resolution scaling against OIDN (cornell, 720p = 1x)"
 
 # One page: the validation summary, then the others with their headings one level down.
-for part in test 720p scaling scaling-filter; do
+for part in test 720p scaling; do
   {
     echo
     echo "<!-- $part/summary.md; its CSV, JSON and plots are in $part/ -->"
@@ -105,4 +100,4 @@ if [ "$dirty" -eq 0 ]; then tree="clean tree"; else tree="$dirty uncommitted fil
 echo "== done in $((SECONDS - start)) s"
 echo "summary:  $out/summary.md"
 echo "plots:    $out/pareto.png $out/pareto.svg"
-echo "data:     $out/results.csv $out/results.json and $out/{720p,scaling,scaling-filter}/"
+echo "data:     $out/results.csv $out/results.json and $out/{720p,scaling}/"

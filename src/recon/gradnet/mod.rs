@@ -182,7 +182,7 @@ impl Register for GradNetConfig {
     /// estimate takes 850 B a pixel and 192 MiB for a frame run whole. A tiled frame takes
     /// that for one tile, plus 64 B a pixel of the frame for what is frame-sized (the output,
     /// the bias correction's planes, the masks): at 3840 x 2160 in tiles of 640 the estimate
-    /// is 1.08 GB, where the CLI's peak less `info`'s was 0.77 GB.
+    /// is 1.08 GB, where the CLI's peak less `info`'s was 0.73 GB.
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
         let whole = self.tile_size == 0 || width.saturating_mul(height) <= self.whole_pixels;
         if whole {
