@@ -3,14 +3,16 @@
 //! against the untiled run, and each failure a distinct, clear error.
 //!
 //! Needs ONNX Runtime 1.31 (found by the library's discovery: `bash onnx/setup.sh` installs
-//! it). Tolerances: the pipeline matches Python to 1e-4 relative (|a - b| <= 1e-4 (|b| + 1e-3));
+//! it). Tolerances: the pipeline matches Python to 1e-4 relative (|a - b| <= 1e-4 (|b| + 1e-3)),
+//! in fp32 against the torch model, in int8 (the default precision) against onnxruntime in
+//! Python running `onnx/gradnet_int8.onnx` (the same kernels, so the same bound holds);
 //! tiled matches untiled to the same bound.
 #![cfg(all(feature = "gradnet", feature = "embed-model"))]
 
 use std::path::{Path, PathBuf};
 
 use assert_cmd::Command;
-use gdrecon::recon::GradNetConfig;
+use gdrecon::recon::{GradNetConfig, GradNetPrecision};
 use gdrecon::{
     io, Context, ContextOptions, Error, Frame, Image, Layer, MethodConfig, Plan, Policy, Progress,
 };
@@ -52,6 +54,13 @@ fn assert_close(got: &Image, want: &Image, what: &str) {
     assert!(worst <= 1e-4, "{what}: worst relative difference {worst:e}");
 }
 
+/// The fp32 graph, which the torch fixtures hold.
+fn fp32() -> GradNetConfig {
+    let mut c = GradNetConfig::default();
+    c.precision = GradNetPrecision::Fp32;
+    c
+}
+
 fn crop(name: &str) -> Frame {
     io::read_bundle(fixture(&format!("{name}.exr")), Policy::Replace).unwrap()
 }
@@ -78,10 +87,10 @@ fn without_features(frame: Frame) -> Frame {
 fn pipeline_matches_the_python_reference() {
     for name in ["crop_a", "crop_b"] {
         let frame = crop(name);
-        let full = run(&frame, GradNetConfig::default()).unwrap();
+        let full = run(&frame, fp32()).unwrap();
         assert_close(&full, &expected(&format!("{name}_out.npy")), name);
 
-        let mut no_bias = GradNetConfig::default();
+        let mut no_bias = fp32();
         no_bias.bias_correction = false;
         let raw = run(&frame, no_bias).unwrap();
         assert_close(&raw, &expected(&format!("{name}_out_nobias.npy")), name);
@@ -96,6 +105,22 @@ fn pipeline_matches_the_python_reference() {
     }
 }
 
+/// The default precision, int8, against `pipeline.reconstruct` with onnxruntime running
+/// `onnx/gradnet_int8.onnx` in Python (`make_fixtures --int8`); and how far int8 is from the
+/// fp32 pipeline on these crops (printed; docs/gradnet.md, "Reduced precision").
+#[test]
+fn int8_pipeline_matches_onnxruntime_in_python() {
+    for name in ["crop_a", "crop_b"] {
+        let frame = crop(name);
+        let int8 = run(&frame, GradNetConfig::default()).unwrap();
+        assert_close(&int8, &expected(&format!("{name}_int8_out.npy")), name);
+        let fp = run(&frame, fp32()).unwrap();
+        let d = gdrecon::metrics::compare(&int8, &fp).unwrap().rel_mse;
+        println!("{name}: relMSE of int8 against fp32 {d:e}");
+        assert!(d < 1e-3, "{name}: int8 strays from fp32: relMSE {d:e}");
+    }
+}
+
 /// The emitter rule (`range_limit`, the pipeline's step 6b) on a frame with bulbs in view
 /// (the `lamps` guard frame; fixture from `make_fixtures --emitter`, onnxruntime): the same
 /// pixels keep their base colour before the bias correction, so the output matches the Python
@@ -104,9 +129,9 @@ fn pipeline_matches_the_python_reference() {
 fn emitter_rule_matches_the_python_reference() {
     let frame = crop("emitter");
     let want = expected("emitter_out.npy");
-    let ours = run(&frame, GradNetConfig::default()).unwrap();
+    let ours = run(&frame, fp32()).unwrap();
     assert_close(&ours, &want, "emitter");
-    let mut release = GradNetConfig::default();
+    let mut release = fp32();
     release.range_limit = 0.0;
     let without = run(&frame, release).unwrap();
     let reference = frame.reference().unwrap();
@@ -151,7 +176,7 @@ fn plans_reuse_the_context_session_and_report_what_ran() {
     assert!(report
         .notes
         .iter()
-        .any(|n| n.contains("embedded gradnet.onnx")));
+        .any(|n| n.contains("embedded gradnet_int8.onnx")));
     let mut b = Plan::new(&ctx, &config, frame.width(), frame.height()).unwrap();
     let (second, _) = b.execute(&frame, &Progress::none()).unwrap();
     assert_eq!(

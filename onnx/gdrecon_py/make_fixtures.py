@@ -17,6 +17,10 @@ export) and the numpy reference pipeline (gdrecon_py/pipeline.py):
                                 tests/data/guard/lamps_16spp.exr (bulbs of radiance up to 424 in
                                 view) through pipeline.reconstruct with onnx/gradnet.onnx run by
                                 onnxruntime: step 6b (keep_emitters) is exercised
+  <crop>_int8_net.npy           (--int8, no checkpoints needed) onnx/gradnet_int8.onnx run by
+                                onnxruntime on <crop>_data / _grad, one channel at a time:
+                                3 x 1 x Hp x Wp
+  <crop>_int8_out.npy           pipeline.reconstruct with that graph (onnxruntime): H x W x 3
 
 Run (needs the checkpoints of docs/gradnet.md; takes a few seconds):
     source onnx/env.sh
@@ -55,9 +59,13 @@ def main(argv=None):
     ap.add_argument("--nofeat", default=os.path.join(RUNS, "nofeat", "last.pt"))
     ap.add_argument("--emitter", action="store_true",
                     help="write only the emitter fixture (onnxruntime and onnx/gradnet.onnx)")
+    ap.add_argument("--int8", action="store_true",
+                    help="write only the int8 fixtures (onnxruntime and onnx/gradnet_int8.onnx)")
     args = ap.parse_args(argv)
     if args.emitter:
         return emitter_fixture(args.out)
+    if args.int8:
+        return int8_fixtures(args.out)
     torch.set_num_threads(2)
     os.makedirs(args.out, exist_ok=True)
     full, _ = ex.load_checkpoint(args.full)
@@ -98,6 +106,25 @@ def emitter_fixture(out_dir):
     shutil.copyfile(src, os.path.join(out_dir, "emitter.exr"))
     np.save(os.path.join(out_dir, "emitter_out.npy"), np.asarray(out, np.float32))
     print(f"emitter: {fr['color'].shape[1]} x {fr['color'].shape[0]}, {kept} pixels keep the base colour")
+
+
+def int8_fixtures(out_dir):
+    """<crop>_int8_net.npy and <crop>_int8_out.npy from onnx/gradnet_int8.onnx (onnxruntime,
+    2 threads, batch 1 per colour channel as the Rust path runs it)."""
+    from . import runtime
+    sess = runtime.session(os.path.join(REPO, "onnx", "gradnet_int8.onnx"))
+    run = pl.ort_runner(sess)
+
+    def per_channel(data, grad):
+        return np.concatenate([run(data[c:c + 1], grad[c:c + 1]) for c in range(data.shape[0])], 0)
+    per_channel.data_channels = run.data_channels
+    for name in CROPS:
+        fr = pl.read_frame(os.path.join(out_dir, f"{name}.exr"))
+        data, grad, _ = pl.prepare_inputs(pl.sanitize(fr), use_features=True)
+        np.save(os.path.join(out_dir, f"{name}_int8_net.npy"), np.asarray(per_channel(data, grad), np.float32))
+        np.save(os.path.join(out_dir, f"{name}_int8_out.npy"),
+                np.asarray(pl.reconstruct(fr, per_channel), np.float32))
+        print(f"{name}: int8 fixtures")
 
 
 if __name__ == "__main__":

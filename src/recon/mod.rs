@@ -38,7 +38,7 @@ pub use auto::AutoConfig;
 #[cfg(feature = "testing")]
 pub use copy::CopyConfig;
 pub use frgr::{FrgrConfig, FrgrGuide};
-pub use gradnet::GradNetConfig;
+pub use gradnet::{GradNetConfig, GradNetPrecision};
 pub use param::{Kind, ParamInfo, Range, Value};
 pub use poisson_l1::PoissonL1Config;
 pub use poisson_l2::PoissonL2Config;

@@ -1,10 +1,12 @@
 //! Where GradNet's weights come from, and proof that they are the ones exported.
 //!
-//! The two exported models (`onnx/gradnet.onnx` with features, `onnx/gradnet_nofeat.onnx`
-//! without) are embedded in the library by the `embed-model` feature (on by default), or read
-//! from a file. Either way the SHA-256 of the bytes is checked before ONNX Runtime sees them:
-//! against the `.sha256` file `onnx/gdrecon_py/export.py` writes beside each model (recorded at export),
-//! or, for a file without one, against the hashes of the two models this build knows.
+//! The exported models (`onnx/gradnet.onnx` with features, `onnx/gradnet_nofeat.onnx`
+//! without, and `onnx/gradnet_int8.onnx`, the feature model quantised to int8 by
+//! `onnx/gdrecon_py/quantize.py`) are embedded in the library by the `embed-model` feature (on
+//! by default), or read from a file. Either way the SHA-256 of the bytes is checked before ONNX
+//! Runtime sees them: against the `.sha256` file `export.py` / `quantize.py` write beside each
+//! model (recorded at export), or, for a file without one, against the hashes of the models
+//! this build knows.
 
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
@@ -13,13 +15,29 @@ use sha2::{Digest, Sha256};
 
 use crate::error::{Error, Result};
 
-/// Which exported model: with the feature branch (8 data channels) or without (1).
+/// Which exported model: with the feature branch (8 data channels) or without (1), and in
+/// which precision.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[non_exhaustive]
 pub enum ModelVariant {
     /// `gradnet.onnx`: colour, albedo, normal and depth in the data branch.
     Full,
     /// `gradnet_nofeat.onnx`: colour only, for frames without feature layers.
     NoFeatures,
+    /// `gradnet_int8.onnx`: [`ModelVariant::Full`] quantised to int8 (QDQ: int8 weights per
+    /// output channel, uint8 activations; the first two convolutions and the output
+    /// convolution kept in fp32), calibrated on the training split (`docs/gradnet.md`,
+    /// "Reduced precision").
+    FullInt8,
+}
+
+impl ModelVariant {
+    /// Every model this build knows.
+    pub const ALL: [ModelVariant; 3] = [
+        ModelVariant::Full,
+        ModelVariant::NoFeatures,
+        ModelVariant::FullInt8,
+    ];
 }
 
 impl ModelVariant {
@@ -28,13 +46,14 @@ impl ModelVariant {
         match self {
             ModelVariant::Full => "gradnet.onnx",
             ModelVariant::NoFeatures => "gradnet_nofeat.onnx",
+            ModelVariant::FullInt8 => "gradnet_int8.onnx",
         }
     }
 
     /// Channels of the data branch's input.
     pub fn data_channels(self) -> usize {
         match self {
-            ModelVariant::Full => 8,
+            ModelVariant::Full | ModelVariant::FullInt8 => 8,
             ModelVariant::NoFeatures => 1,
         }
     }
@@ -44,6 +63,7 @@ impl ModelVariant {
         let line = match self {
             ModelVariant::Full => include_str!("../../../onnx/gradnet.onnx.sha256"),
             ModelVariant::NoFeatures => include_str!("../../../onnx/gradnet_nofeat.onnx.sha256"),
+            ModelVariant::FullInt8 => include_str!("../../../onnx/gradnet_int8.onnx.sha256"),
         };
         line.split_whitespace().next().unwrap_or_default()
     }
@@ -83,6 +103,7 @@ pub(crate) fn embedded(variant: ModelVariant) -> Result<ModelBytes> {
         let bytes: &'static [u8] = match variant {
             ModelVariant::Full => include_bytes!("../../../onnx/gradnet.onnx"),
             ModelVariant::NoFeatures => include_bytes!("../../../onnx/gradnet_nofeat.onnx"),
+            ModelVariant::FullInt8 => include_bytes!("../../../onnx/gradnet_int8.onnx"),
         };
         let origin = format!("embedded {}", variant.file_name());
         checked(Cow::Borrowed(bytes), variant.recorded_sha256(), origin)
@@ -120,20 +141,25 @@ pub(crate) fn from_file(path: &Path) -> Result<ModelBytes> {
         }
         Err(_) => {
             let actual = sha256_hex(&bytes);
-            let known = [ModelVariant::Full, ModelVariant::NoFeatures];
-            if known.iter().any(|v| v.recorded_sha256() == actual) {
+            if ModelVariant::ALL
+                .iter()
+                .any(|v| v.recorded_sha256() == actual)
+            {
                 Ok(ModelBytes {
                     bytes: Cow::Owned(bytes),
                     sha256: actual,
                     origin,
                 })
             } else {
+                let known: Vec<&str> = ModelVariant::ALL
+                    .iter()
+                    .map(|v| v.recorded_sha256())
+                    .collect();
                 Err(Error::Model(format!(
                     "{origin}: SHA-256 {actual} is not that of an exported GradNet model \
-                     (expected {} or {}, or a {} file beside the model as onnx/gdrecon_py/export.py \
-                     writes): the file is damaged or is another model",
-                    ModelVariant::Full.recorded_sha256(),
-                    ModelVariant::NoFeatures.recorded_sha256(),
+                     (expected one of {}, or a {} file beside the model as \
+                     onnx/gdrecon_py/export.py writes): the file is damaged or is another model",
+                    known.join(", "),
                     sidecar.display()
                 )))
             }
@@ -177,7 +203,7 @@ mod tests {
     #[test]
     fn recorded_hashes_are_those_of_models_json() {
         let json = include_str!("../../../onnx/models.json");
-        for v in [ModelVariant::Full, ModelVariant::NoFeatures] {
+        for v in ModelVariant::ALL {
             let h = v.recorded_sha256();
             assert_eq!(h.len(), 64);
             assert!(json.contains(&format!("\"sha256\": \"{h}\"")), "{v:?}");
@@ -187,7 +213,7 @@ mod tests {
     #[cfg(feature = "embed-model")]
     #[test]
     fn embedded_models_pass_their_check() {
-        for v in [ModelVariant::Full, ModelVariant::NoFeatures] {
+        for v in ModelVariant::ALL {
             let m = embedded(v).unwrap();
             assert_eq!(m.sha256, v.recorded_sha256());
         }
