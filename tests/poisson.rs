@@ -3,7 +3,7 @@
 mod common;
 
 use common::*;
-use gdrecon::recon::{reconstruct, PoissonL1Config, PoissonL2Config, Value};
+use gdrecon::recon::{reconstruct, PoissonL1Config, PoissonL2Config, Preconditioner, Value};
 use gdrecon::{metrics, Context, ContextOptions, Image, Method, MethodConfig, Plan, Progress};
 
 fn l2(frame: &gdrecon::Frame, alpha: f32) -> Image {
@@ -129,15 +129,21 @@ fn zero_gradients_smooth_the_base() {
 fn l1_matches_naive_irls_reference() {
     let (frame, _) = noisy_frame(12, 10, 11);
     for floor in [0.0, 1e-2, 0.2] {
-        let mut config = PoissonL1Config::default();
-        config.reweight_steps = 6;
-        config.cg_iterations = 500;
-        config.cg_tolerance = 1e-6;
-        config.reg_floor = floor;
-        let ours = to_f64(&l1(&frame, config));
         let reference = reference_l1(&frame, 0.2, 6, f64::from(floor));
-        let d = rel_max_diff(&ours, &reference);
-        assert!(d < 2e-4, "floor {floor}: relative difference {d:e}");
+        for preconditioner in [Preconditioner::Multigrid, Preconditioner::Dct] {
+            let mut config = PoissonL1Config::default();
+            config.reweight_steps = 6;
+            config.cg_iterations = 500;
+            config.cg_tolerance = 1e-6;
+            config.reg_floor = floor;
+            config.preconditioner = preconditioner;
+            let ours = to_f64(&l1(&frame, config));
+            let d = rel_max_diff(&ours, &reference);
+            assert!(
+                d < 2e-4,
+                "floor {floor}, {preconditioner:?}: relative difference {d:e}"
+            );
+        }
     }
 }
 
@@ -262,21 +268,32 @@ fn results_are_bit_identical_for_any_thread_count() {
         MethodConfig::PoissonL1(PoissonL1Config::default()),
         MethodConfig::Frgr(small),
     ] {
-        let run = |threads| {
-            let ctx = Context::new(ContextOptions::with_threads(Some(threads))).unwrap();
-            let mut plan = Plan::new(&ctx, &config, frame.width(), frame.height()).unwrap();
-            plan.execute(&frame, &Progress::none()).unwrap().0
-        };
-        let one = run(1);
-        for t in [2, 3, 5] {
-            assert!(
-                one.as_slice()
-                    .iter()
-                    .zip(run(t).as_slice())
-                    .all(|(a, b)| a.to_bits() == b.to_bits()),
-                "{config:?} differs at {t} threads"
-            );
-        }
+        check_threads(&config, &frame);
+    }
+    // A frame large enough for the multigrid's parallel passes (more than 2^15 pixels),
+    // with odd sides.
+    let large = gdrecon::synth::synthetic_frame(257, 131, 8.0, 5);
+    let mut short = PoissonL1Config::default();
+    short.reweight_steps = 3;
+    check_threads(&MethodConfig::PoissonL1(short), &large);
+}
+
+/// `config` on `frame` gives the same bits on 1, 2, 3 and 5 threads.
+fn check_threads(config: &MethodConfig, frame: &gdrecon::Frame) {
+    let run = |threads| {
+        let ctx = Context::new(ContextOptions::with_threads(Some(threads))).unwrap();
+        let mut plan = Plan::new(&ctx, config, frame.width(), frame.height()).unwrap();
+        plan.execute(frame, &Progress::none()).unwrap().0
+    };
+    let one = run(1);
+    for t in [2, 3, 5] {
+        assert!(
+            one.as_slice()
+                .iter()
+                .zip(run(t).as_slice())
+                .all(|(a, b)| a.to_bits() == b.to_bits()),
+            "{config:?} differs at {t} threads"
+        );
     }
 }
 

@@ -23,6 +23,7 @@ pub mod copy;
 mod dct;
 pub mod frgr;
 pub mod gradnet;
+mod multigrid;
 mod ops;
 pub mod param;
 pub mod poisson_l1;
@@ -40,7 +41,7 @@ pub use copy::CopyConfig;
 pub use frgr::{FrgrConfig, FrgrGuide};
 pub use gradnet::{GradNetConfig, GradNetPrecision};
 pub use param::{Kind, ParamInfo, Range, Value};
-pub use poisson_l1::PoissonL1Config;
+pub use poisson_l1::{PoissonL1Config, Preconditioner};
 pub use poisson_l2::PoissonL2Config;
 pub use prior::{DataTerm, PriorConfig, Quality};
 
@@ -246,7 +247,7 @@ registry! {
     PoissonL2(PoissonL2Config) = "l2",
         "Screened Poisson, L2, solved exactly by two 2-D DCTs";
     PoissonL1(PoissonL1Config) = "l1",
-        "Screened Poisson, group L1, by IRLS with DCT-preconditioned CG";
+        "Screened Poisson, group L1, by IRLS with multigrid-preconditioned CG";
     Frgr(FrgrConfig) = "frgr",
         "Filtering-based reconstruction, FRGR (Yan et al. 2024); needs the frame's spp";
     GradNet(GradNetConfig) = "gradnet",

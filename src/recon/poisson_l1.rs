@@ -30,6 +30,7 @@ use std::time::{Duration, Instant};
 use rayon::prelude::*;
 
 use super::dct::DctPoisson;
+use super::multigrid::{multigrid_bytes, Multigrid};
 use super::ops::{apply_weighted_dot, plane_sums, Dims, RowWeights};
 use super::param::{Param, Params, Preset, Range};
 use super::poisson_l2::{ALPHA_RANGE, DEFAULT_ALPHA};
@@ -55,14 +56,41 @@ pub struct PoissonL1Config {
     pub cg_iterations: u32,
     /// Relative CG residual at which a step stops; 0 runs all `cg_iterations`.
     pub cg_tolerance: f32,
-    /// Precondition CG with the exact L2 (DCT) solve.
+    /// Precondition CG (with [`Self::preconditioner`]).
     pub preconditioned: bool,
+    /// Which preconditioner CG uses when `preconditioned`.
+    pub preconditioner: Preconditioner,
     /// Lower bound of the IRLS regularisation `reg_k` (radiance units).
     pub reg_floor: f32,
     /// What the data term anchors to: the base image or the prior.
     pub data: DataTerm,
     /// Weight of the data term when it is the prior.
     pub prior_alpha: f32,
+}
+
+/// The preconditioner of each IRLS step's conjugate gradients.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum Preconditioner {
+    /// The exact DCT solve of the unweighted system, diagonally rescaled to the weights.
+    Dct,
+    /// An algebraic multigrid V-cycle on the weighted system itself.
+    Multigrid,
+}
+
+impl Preconditioner {
+    /// Every preconditioner, in parameter order.
+    pub const ALL: [Preconditioner; 2] = [Preconditioner::Dct, Preconditioner::Multigrid];
+    /// Their names, by index.
+    pub const NAMES: &'static [&'static str] = &["dct", "multigrid"];
+
+    /// The preconditioner's index in [`Preconditioner::ALL`].
+    pub fn index(self) -> usize {
+        match self {
+            Preconditioner::Dct => 0,
+            Preconditioner::Multigrid => 1,
+        }
+    }
 }
 
 /// `prior_alpha` of L1: the prior path's weight, chosen on the validation split
@@ -88,6 +116,7 @@ impl Default for PoissonL1Config {
             cg_iterations: 1000,
             cg_tolerance: 1e-6,
             preconditioned: true,
+            preconditioner: Preconditioner::Multigrid,
             reg_floor: 1e-2,
             data: DataTerm::Colour,
             prior_alpha: DEFAULT_PRIOR_ALPHA_L1,
@@ -105,6 +134,7 @@ impl PoissonL1Config {
         PoissonL1Config {
             cg_iterations: 8,
             cg_tolerance: 1e-2,
+            preconditioner: Preconditioner::Dct,
             reg_floor: 0.0,
             ..Self::default()
         }
@@ -186,6 +216,14 @@ impl Params for PoissonL1Config {
             |c| c.preconditioned,
             |c, v| c.preconditioned = v,
         ),
+        Param::choice(
+            "preconditioner",
+            Preconditioner::NAMES,
+            "CG's preconditioner: 'dct' (the exact unweighted solve, rescaled to the weights) or \
+             'multigrid' (an algebraic V-cycle on the weighted system)",
+            |c| c.preconditioner.index(),
+            |c, v| c.preconditioner = Preconditioner::ALL[v],
+        ),
         Param::float(
             "reg_floor",
             Range::closed(0.0, 1e6),
@@ -215,8 +253,9 @@ impl Params for PoissonL1Config {
     const PRESETS: &'static [Preset<Self>] = &[
         Preset {
             name: "fast",
-            doc: "truncated, not converged: at most 8 CG iterations per step, stopped at a \
-                  relative residual of 1e-2, no regularisation floor (the default until 0.2)",
+            doc: "truncated, not converged: at most 8 DCT-preconditioned CG iterations per \
+                  step, stopped at a relative residual of 1e-2, no regularisation floor (the \
+                  default until 0.2)",
             config: PoissonL1Config::fast,
         },
         Preset {
@@ -267,13 +306,20 @@ impl Register for PoissonL1Config {
 }
 
 /// Bytes a [`PoissonL1`] holds (without the output image): six 3-plane CG vectors and four
-/// weight planes (22 f32 planes), and the preconditioner's eigenvalues and transposed planes
-/// (4 more), with 4 B a pixel to spare. With the output, peak heap measured by a counting
-/// allocator (tests/memory.rs): 116.3, 116.2 and 116.1 B a pixel at 256 x 192, 640 x 360 and
-/// 1280 x 720 (100.0 without the preconditioner, preset `published`), against 120 (104).
+/// weight planes (22 f32 planes) with 4 B a pixel to spare, and the preconditioner: the
+/// multigrid hierarchy ([`multigrid_bytes`], about 30 B a pixel) or the DCT's eigenvalues and
+/// transposed planes (4 planes). With the output, peak heap measured by a counting allocator
+/// (tests/memory.rs, `peak_table`): 130.5 and 130.4 B a pixel at 640 x 360 and 1280 x 720 with
+/// the multigrid (estimate 1.06x and 1.04x), 100.0 without a preconditioner (preset
+/// `published`, estimate 1.05x).
 pub(crate) fn l1_memory(config: &PoissonL1Config, width: usize, height: usize) -> u64 {
-    let planes = if config.preconditioned { 26 } else { 22 };
-    bytes_for(width, height, 4 * planes + 4, MIB)
+    match (config.preconditioned, config.preconditioner) {
+        (true, Preconditioner::Multigrid) => {
+            bytes_for(width, height, 4 * 22 + 4, MIB).saturating_add(multigrid_bytes(width, height))
+        }
+        (true, _) => bytes_for(width, height, 4 * 26 + 4, MIB),
+        (false, _) => bytes_for(width, height, 4 * 22 + 4, MIB),
+    }
 }
 
 /// A planned L1 solve for one size; all buffers are allocated here and reused.
@@ -281,6 +327,7 @@ pub(crate) struct PoissonL1 {
     dims: Dims,
     cfg: PoissonL1Config,
     precond: Option<DctPoisson>,
+    multigrid: Option<Multigrid>,
     x: Vec<f32>,
     r: Vec<f32>,
     z: Vec<f32>,
@@ -316,9 +363,12 @@ impl PoissonL1 {
         Ok(PoissonL1 {
             dims,
             cfg: config,
-            precond: config
-                .preconditioned
+            precond: (config.preconditioned && config.preconditioner == Preconditioner::Dct)
                 .then(|| DctPoisson::new(dims, config.alpha))
+                .transpose()?,
+            multigrid: (config.preconditioned
+                && config.preconditioner == Preconditioner::Multigrid)
+                .then(|| Multigrid::new(dims))
                 .transpose()?,
             x: v3()?,
             r: v3()?,
@@ -515,7 +565,7 @@ impl PoissonL1 {
     fn precondition(&mut self) -> [f64; 3] {
         let n = self.dims.len();
         let w = self.dims.w;
-        let Some(m) = self.precond.as_mut() else {
+        if self.precond.is_none() && self.multigrid.is_none() {
             self.z.copy_from_slice(&self.r);
             let r = std::mem::take(&mut self.r);
             let rr = plane_sums(&r, &r, w, n, &mut self.partials, |a, b| {
@@ -523,8 +573,17 @@ impl PoissonL1 {
             });
             self.r = r;
             return [rr[0], rr[1], rr[2]];
-        };
+        }
         let t0 = Instant::now();
+        if let Some(mg) = self.multigrid.as_mut() {
+            mg.apply(&self.r, &mut self.z);
+            let (r, z) = (&self.r, &self.z);
+            let rz = plane_sums(r, z, w, n, &mut self.partials, |a, b| {
+                f64::from(a) * f64::from(b)
+            });
+            self.precond_time += t0.elapsed();
+            return [rz[0], rz[1], rz[2]];
+        }
         let s = &self.scale;
         self.z
             .par_chunks_mut(n)
@@ -534,7 +593,9 @@ impl PoissonL1 {
                     .zip(r.par_iter().zip(s.par_iter()))
                     .for_each(|(z, (&r, &s))| *z = r * s);
             });
-        m.solve(&mut self.z);
+        if let Some(m) = self.precond.as_mut() {
+            m.solve(&mut self.z);
+        }
         let rows_per_plane = self.dims.h;
         self.z
             .par_chunks_mut(w)
@@ -674,6 +735,10 @@ impl Reconstructor for PoissonL1 {
                     self.update_scale();
                 }
             }
+            if let Some(mg) = self.multigrid.as_mut() {
+                let alpha2 = self.cfg.alpha * self.cfg.alpha;
+                mg.set_operator(alpha2, &self.wd, &self.wx, &self.wy);
+            }
             // (step + f) / steps: exact at step boundaries, so progress is monotone.
             let at = |f: f64| progress.update((f64::from(step) + f) / f64::from(steps));
             // Report (and let the caller cancel) at every step, also those whose CG has
@@ -711,6 +776,8 @@ impl Reconstructor for PoissonL1 {
             "IRLS: {steps} steps, {total_iters} CG iterations ({}), last relative residual {last_rel:.2e}",
             if self.precond.is_some() {
                 "DCT-preconditioned"
+            } else if self.multigrid.is_some() {
+                "multigrid-preconditioned"
             } else {
                 "unpreconditioned"
             }
