@@ -22,8 +22,11 @@
 //! piecewise-constant interpolation: 1.1 was even with 1, 1.3 and above worse).
 //!
 //! Every pass is parallel over bands of rows and gives the same bits for any thread count:
-//! within a colour, cells do not depend on each other, and the rows next to a band are read
-//! from a copy taken before the half-sweep (they are of the other colour, so unchanged by it).
+//! within a colour, cells do not depend on each other, and a band's smoothing reads the rows
+//! beyond its edges from copies taken before the pass. The kernels are memory-bound, so the
+//! passes are fused: all the sweeps before (after) the coarse correction are one pass over
+//! the level, the prolongation is added in the post-smoothing pass, and the three planes of a
+//! row are processed together so each row's weights are read once.
 
 use rayon::prelude::*;
 
@@ -36,12 +39,32 @@ use crate::image::try_vec;
 /// saving in cost; three saved few more iterations (73).
 const SWEEPS: usize = 2;
 
+/// Half-sweeps fused into one pass (see [`Level::smooth`]), and the rows copied beyond each
+/// band's edges.
+const HALF_SWEEPS: usize = 2 * SWEEPS;
+
 /// Rows per parallel band. Levels smaller than [`PARALLEL_CELLS`] run on one thread.
 const BAND: usize = 32;
 const PARALLEL_CELLS: usize = 1 << 15;
 
 /// Row `k` (of rows or bands) of three planes, as the parallel passes hand them out.
 type Rows3<'a> = (usize, ((&'a mut [f32], &'a mut [f32]), &'a mut [f32]));
+
+/// A coarse correction `P coarse_x` to add to a level's three planes: each coarse value
+/// goes to its 2 x 2 block.
+struct Correction<'a> {
+    coarse_x: &'a [f32],
+    coarse: Dims,
+}
+
+impl Correction<'_> {
+    /// Adds the correction to row `y` of plane `c`.
+    fn add(&self, row: &mut [f32], c: usize, y: usize) {
+        let Dims { w, h } = self.coarse;
+        let o = c * w * h + (y / 2) * w;
+        add_pairs(row, &self.coarse_x[o..o + w]);
+    }
+}
 
 /// One level's operator and (below the fine level) its vectors.
 #[derive(Clone)]
@@ -56,7 +79,7 @@ struct Level {
     /// vectors are the caller's.
     x: Vec<f32>,
     b: Vec<f32>,
-    /// Copies of the rows next to each band (see the module comment).
+    /// Copies of the rows beyond each band's edges (see [`Level::smooth`]).
     halo: Vec<f32>,
     /// A row of zeros: the weights and values above the first row.
     zeros: Vec<f32>,
@@ -70,13 +93,14 @@ pub(crate) struct Multigrid {
     levels: Vec<Level>,
 }
 
-/// Bytes a [`Multigrid`] for `w x h` frames holds: four operator planes and the halo on every
-/// level, and six vector planes below the fine one (the coarse levels add a third of the
-/// fine level's size).
+/// Bytes a [`Multigrid`] for `w x h` frames holds: four operator planes and the halo
+/// ([`HALF_SWEEPS`] rows on each side of every band, three planes) on every level, and six
+/// vector planes below the fine one (the coarse levels add a third of the fine level's size).
 pub(crate) fn multigrid_bytes(w: usize, h: usize) -> u64 {
     let n = (w * h) as u64;
     // Fine level: 4 planes; coarse levels: (4 + 6) planes over n / 3 cells in all.
-    4 * (4 * n + 10 * n.div_ceil(3)) + 4 * 6 * w as u64 * (h.div_ceil(BAND) as u64 + 1)
+    let halo = 6 * HALF_SWEEPS as u64 * w as u64 * (h.div_ceil(BAND) as u64 + 1);
+    4 * (4 * n + 10 * n.div_ceil(3)) + 4 * halo
 }
 
 impl Multigrid {
@@ -103,7 +127,7 @@ impl Multigrid {
                 } else {
                     try_vec(3 * n, 0.0)?
                 },
-                halo: try_vec(6 * d.w * d.h.div_ceil(BAND), 0.0)?,
+                halo: try_vec(6 * HALF_SWEEPS * d.w * d.h.div_ceil(BAND), 0.0)?,
                 zeros: try_vec(d.w, 0.0)?,
                 mask: (0..=d.w).map(|i| i % 2 == 0).collect(),
             });
@@ -152,19 +176,17 @@ fn cycle(levels: &mut [Level], x: &mut [f32], b: &[f32]) {
         }
         return;
     };
-    level.sweep(x, b, 0, true);
-    for _ in 1..SWEEPS {
-        level.sweep(x, b, 0, false);
-    }
+    level.smooth(x, b, 0, true, None);
     let cd = coarse.dims;
     let (mut cx, mut cb) = (std::mem::take(&mut coarse.x), std::mem::take(&mut coarse.b));
     level.restrict_residual(x, b, cd, &mut cb);
     cycle(coarser, &mut cx, &cb);
-    level.prolong_add(x, &cx, cd);
+    let correction = Correction {
+        coarse_x: &cx,
+        coarse: cd,
+    };
+    level.smooth(x, b, 1, false, Some(correction));
     (coarser[0].x, coarser[0].b) = (cx, cb);
-    for _ in 0..SWEEPS {
-        level.sweep(x, b, 1, false);
-    }
 }
 
 impl Level {
@@ -236,157 +258,175 @@ impl Level {
         }
     }
 
-    /// Copies the rows above and below every band of `x` into the halo.
-    fn fill_halo(&self, halo: &mut [f32], x: &[f32]) {
+    /// Copies the [`HALF_SWEEPS`] rows above and below every band of `x` (all three planes)
+    /// into the halo, with the coarse correction added if there is one: above rows first,
+    /// below rows from offset `HALF_SWEEPS` rows, per plane.
+    fn fill_halo(&self, halo: &mut [f32], x: &[f32], correction: Option<&Correction<'_>>) {
         let Dims { w, h } = self.dims;
-        let n = w * h;
-        for (k, halo) in halo.chunks_mut(6 * w).take(h.div_ceil(BAND)).enumerate() {
+        let (n, g) = (w * h, HALF_SWEEPS);
+        let each = |(k, halo): (usize, &mut [f32])| {
             let (top, bottom) = (k * BAND, ((k + 1) * BAND).min(h));
-            for c in 0..3 {
-                if top >= 1 {
-                    let o = c * n + (top - 1) * w;
-                    halo[2 * c * w..(2 * c + 1) * w].copy_from_slice(&x[o..o + w]);
-                }
-                if bottom < h {
-                    let o = c * n + bottom * w;
-                    halo[(2 * c + 1) * w..(2 * c + 2) * w].copy_from_slice(&x[o..o + w]);
+            let (lo, hi) = (top.saturating_sub(g), (bottom + g).min(h));
+            for (c, halo) in halo.chunks_mut(2 * g * w).enumerate() {
+                let rows = (lo..top).zip(0..).chain((bottom..hi).zip(g..));
+                for (y, at) in rows {
+                    let row = &mut halo[at * w..(at + 1) * w];
+                    row.copy_from_slice(&x[c * n + y * w..c * n + (y + 1) * w]);
+                    if let Some(correction) = correction {
+                        correction.add(row, c, y);
+                    }
                 }
             }
+        };
+        let halo = &mut halo[..6 * g * w * h.div_ceil(BAND)];
+        if n >= PARALLEL_CELLS {
+            halo.par_chunks_mut(6 * g * w).enumerate().for_each(each);
+        } else {
+            halo.chunks_mut(6 * g * w).enumerate().for_each(each);
         }
     }
 
-    /// One red-black Gauss-Seidel sweep on all three planes of `x`: the cells of colour
-    /// `first` (`(x + y) % 2 == first`), then the others. With `from_zero`, `x` is taken as
-    /// 0 and the first half-sweep reads no neighbours.
+    /// [`SWEEPS`] red-black Gauss-Seidel sweeps on all three planes of `x`, each the cells of
+    /// colour `first` (`(x + y) % 2 == first`), then the others. With `from_zero`, `x` is
+    /// taken as 0 and the first half-sweep reads no neighbours; with a `correction`, `x` is
+    /// first increased by it (the prolongation, done here to save a pass over memory).
     ///
-    /// The two half-sweeps run in one pass over each band, the second one row behind the
-    /// first, so the band is read once; only the band's first and last rows, which need the
-    /// neighbouring bands' first half, wait for a second, short pass. The result is the
-    /// plain sweep's, bit for bit.
-    fn sweep(&mut self, x: &mut [f32], b: &[f32], first: usize, from_zero: bool) {
+    /// All half-sweeps run in one pass over each band, as a wavefront: half-sweep `j` one row
+    /// behind half-sweep `j - 1`, so each row is read from memory once. A band works on
+    /// private copies of the [`HALF_SWEEPS`] rows beyond each of its edges, taken before the
+    /// pass, and updates them too: half-sweep `j` leaves out the `j + 1` outermost rows
+    /// (their neighbours are not there), which still leaves the band's own rows exact after
+    /// the last one. The result is that of the plain sweeps, bit for bit, for any number of
+    /// threads.
+    fn smooth(
+        &mut self,
+        x: &mut [f32],
+        b: &[f32],
+        first: usize,
+        from_zero: bool,
+        correction: Option<Correction<'_>>,
+    ) {
         let Dims { w, h } = self.dims;
-        let n = w * h;
-        let second = 1 - first;
+        let (n, g) = (w * h, HALF_SWEEPS);
         let mut halo = std::mem::take(&mut self.halo);
         if !from_zero {
-            self.fill_halo(&mut halo, x);
+            self.fill_halo(&mut halo, x, correction.as_ref());
         }
         let this = &*self;
-        let start_row = |band: &mut [f32], r: usize, top: usize, b: &[f32]| {
-            let o = (top + r) * w;
-            let (row, b, inv) = (
-                &mut band[r * w..(r + 1) * w],
-                &b[o..o + w],
-                &this.inv_diag[o..o + w],
-            );
-            let parity = (first + top + r) % 2;
-            for (i, ((x, &b), &d)) in row.iter_mut().zip(b).zip(inv).enumerate() {
-                *x = if i % 2 == parity { b * d } else { 0.0 };
-            }
-        };
-        // Pass 1: the first colour everywhere, the second on rows inside the band.
-        let inner = |(k, ((p0, p1), p2)): Rows3<'_>| {
-            let halo = &halo[6 * w * k..6 * w * (k + 1)];
+        let band = |((k, ((p0, p1), p2)), halo): (Rows3<'_>, &mut [f32])| {
             let top = k * BAND;
+            let bottom = top + p0.len() / w;
+            let (lo, hi) = (top.saturating_sub(g), (bottom + g).min(h));
+            let (above, below, total) = (top - lo, hi - bottom, hi - lo);
+            // Each plane's rows lo..hi: the halo copies above, the band, the copies below.
+            let mut planes: Vec<Vec<&mut [f32]>> = [p0, p1, p2]
+                .into_iter()
+                .zip(halo.chunks_mut(2 * g * w))
+                .map(|(band, halo)| {
+                    let (up, down) = halo.split_at_mut(g * w);
+                    up[..above * w]
+                        .chunks_mut(w)
+                        .chain(band.chunks_mut(w))
+                        .chain(down[..below * w].chunks_mut(w))
+                        .collect()
+                })
+                .collect();
             let mut tmp = vec![0.0f32; w];
-            for (c, band) in [p0, p1, p2].into_iter().enumerate() {
-                let (halo, b) = (&halo[2 * c * w..(2 * c + 2) * w], &b[c * n..(c + 1) * n]);
-                let rows = band.len() / w;
-                for r in 0..rows {
-                    if from_zero {
-                        start_row(band, r, top, b);
-                    } else {
-                        this.relax_row(band, r, top, halo, b, first, &mut tmp);
+            let mut corrected = above;
+            for step in 0..total + g - 1 {
+                // The band's rows receive the correction one row ahead of the first
+                // half-sweep, which reads the row below.
+                if let Some(correction) = &correction {
+                    while corrected < (step + 2).min(above + (bottom - top)) {
+                        for (c, rows) in planes.iter_mut().enumerate() {
+                            correction.add(rows[corrected], c, lo + corrected);
+                        }
+                        corrected += 1;
                     }
-                    if r >= 2 {
-                        this.relax_row(band, r - 1, top, halo, b, second, &mut tmp);
+                }
+                // Channels inside the row loop: the row's weights are read from memory once.
+                for (c, rows) in planes.iter_mut().enumerate() {
+                    let b = &b[c * n..(c + 1) * n];
+                    for j in 0..g.min(step + 1) {
+                        let r = step - j;
+                        if r >= total {
+                            continue;
+                        }
+                        let colour = (first + j) % 2;
+                        if j == 0 && from_zero {
+                            this.start_row(rows[r], lo + r, colour, b);
+                        } else if (lo == 0 || r > j) && (hi == h || r + j + 1 < total) {
+                            this.relax_row(rows, r, lo + r, b, colour, &mut tmp);
+                        }
                     }
                 }
             }
         };
-        this.over_bands(x, &inner);
-        this.fill_halo(&mut halo, x);
-        // Pass 2: the second colour on each band's first and last rows.
-        let edges = |(k, ((p0, p1), p2)): Rows3<'_>| {
-            let halo = &halo[6 * w * k..6 * w * (k + 1)];
-            let top = k * BAND;
-            let mut tmp = vec![0.0f32; w];
-            for (c, band) in [p0, p1, p2].into_iter().enumerate() {
-                let (halo, b) = (&halo[2 * c * w..(2 * c + 2) * w], &b[c * n..(c + 1) * n]);
-                let rows = band.len() / w;
-                this.relax_row(band, 0, top, halo, b, second, &mut tmp);
-                if rows > 1 {
-                    this.relax_row(band, rows - 1, top, halo, b, second, &mut tmp);
-                }
-            }
-        };
-        this.over_bands(x, &edges);
-        self.halo = halo;
-    }
-
-    /// Runs `f` on every band of the three planes of `x`, in parallel on large levels.
-    fn over_bands<F>(&self, x: &mut [f32], f: &F)
-    where
-        F: for<'a> Fn(Rows3<'a>) + Sync,
-    {
-        let n = self.dims.len();
         let (x0, rest) = x.split_at_mut(n);
         let (x1, x2) = rest.split_at_mut(n);
-        let rows = BAND * self.dims.w;
+        let (rows, per_band) = (BAND * w, 6 * g * w);
+        let halo_bands = &mut halo[..per_band * h.div_ceil(BAND)];
         if n >= PARALLEL_CELLS {
             x0.par_chunks_mut(rows)
                 .zip(x1.par_chunks_mut(rows))
                 .zip(x2.par_chunks_mut(rows))
                 .enumerate()
-                .for_each(f);
+                .zip(halo_bands.par_chunks_mut(per_band))
+                .for_each(band);
         } else {
             x0.chunks_mut(rows)
                 .zip(x1.chunks_mut(rows))
                 .zip(x2.chunks_mut(rows))
                 .enumerate()
-                .for_each(f);
+                .zip(halo_bands.chunks_mut(per_band))
+                .for_each(band);
         }
+        self.halo = halo;
     }
 
-    /// Gauss-Seidel on the cells of `colour` in row `r` of `band` (one plane's rows from
-    /// `top`); `halo` holds the rows above and below the band.
-    #[allow(clippy::too_many_arguments)]
+    /// The first half-sweep from `x = 0` on row `y`: the cells of `colour` get `b / diag`,
+    /// the others 0.
+    fn start_row(&self, row: &mut [f32], y: usize, colour: usize, b: &[f32]) {
+        let w = self.dims.w;
+        let o = y * w;
+        let first = (colour + y) % 2;
+        start_kernel(
+            row,
+            &b[o..o + w],
+            &self.inv_diag[o..o + w],
+            &self.mask[first..first + w],
+        );
+    }
+
+    /// Gauss-Seidel on the cells of `colour` in row `r` of `rows` (one plane's rows, row `r`
+    /// at height `y`); the rows next to it must be there unless `y` is the first or last.
     fn relax_row(
         &self,
-        band: &mut [f32],
+        rows: &mut [&mut [f32]],
         r: usize,
-        top: usize,
-        halo: &[f32],
+        y: usize,
         b: &[f32],
         colour: usize,
         tmp: &mut [f32],
     ) {
         let Dims { w, h } = self.dims;
-        let rows = band.len() / w;
-        let y = top + r;
-        let (before, rest) = band.split_at_mut(r * w);
-        let (cur, after) = rest.split_at_mut(w);
-        let up = if r >= 1 {
-            &before[(r - 1) * w..]
-        } else {
-            &halo[..w]
-        };
-        let down = if r + 1 < rows {
-            &after[..w]
-        } else {
-            &halo[w..]
-        };
+        let (before, rest) = rows.split_at_mut(r);
+        let (cur, after) = rest.split_first_mut().expect("row r exists");
         let o = y * w;
         let (ex, inv, br) = (&self.ex[o..o + w], &self.inv_diag[o..o + w], &b[o..o + w]);
         // Missing neighbours have weight 0 (the last row's `ey` is 0; above the first
         // row, `zeros` stands in).
         let ey_down = &self.ey[o..o + w];
         let (ey_up, up) = if y >= 1 {
-            (&self.ey[o - w..o], up)
+            (&self.ey[o - w..o], &*before[r - 1])
         } else {
             (&self.zeros[..], &self.zeros[..])
         };
-        let down = if y + 1 < h { down } else { &self.zeros[..] };
+        let down = if y + 1 < h {
+            &*after[0]
+        } else {
+            &self.zeros[..]
+        };
         let first = (colour + y) % 2;
         relax_kernel(
             &mut tmp[..w],
@@ -399,28 +439,34 @@ impl Level {
     /// `coarse_b = P^T (b - A x)` on all three planes.
     fn restrict_residual(&self, x: &[f32], b: &[f32], coarse: Dims, coarse_b: &mut [f32]) {
         let Dims { w, h } = self.dims;
-        let (n, cw, ch) = (w * h, coarse.w, coarse.h);
-        let each = |row_buf: &mut Vec<f32>, (row, out): (usize, &mut [f32])| {
-            let (c, cy) = (row / ch, row % ch);
-            let (x, b) = (&x[c * n..(c + 1) * n], &b[c * n..(c + 1) * n]);
-            out.fill(0.0);
+        let (n, cn, cw) = (w * h, coarse.len(), coarse.w);
+        let (b0, rest) = coarse_b.split_at_mut(cn);
+        let (b1, b2) = rest.split_at_mut(cn);
+        // The three channels of a coarse row together: its weights are read from memory once.
+        let each = |row_buf: &mut Vec<f32>, (cy, ((o0, o1), o2)): Rows3<'_>| {
             row_buf.resize(w, 0.0);
-            for y in 2 * cy..(2 * cy + 2).min(h) {
-                self.residual_row(x, b, y, row_buf);
-                for (o, pair) in out.iter_mut().zip(row_buf.chunks(2)) {
-                    *o += pair.iter().sum::<f32>();
+            for (c, out) in [o0, o1, o2].into_iter().enumerate() {
+                let (x, b) = (&x[c * n..(c + 1) * n], &b[c * n..(c + 1) * n]);
+                out.fill(0.0);
+                for y in 2 * cy..(2 * cy + 2).min(h) {
+                    self.residual_row(x, b, y, row_buf);
+                    for (o, pair) in out.iter_mut().zip(row_buf.chunks(2)) {
+                        *o += pair.iter().sum::<f32>();
+                    }
                 }
             }
         };
         if n >= PARALLEL_CELLS {
-            coarse_b
-                .par_chunks_mut(cw)
+            b0.par_chunks_mut(cw)
+                .zip(b1.par_chunks_mut(cw))
+                .zip(b2.par_chunks_mut(cw))
                 .enumerate()
                 .for_each_init(Vec::new, each);
         } else {
             let mut row_buf = Vec::new();
-            coarse_b
-                .chunks_mut(cw)
+            b0.chunks_mut(cw)
+                .zip(b1.chunks_mut(cw))
+                .zip(b2.chunks_mut(cw))
                 .enumerate()
                 .for_each(|item| each(&mut row_buf, item));
         }
@@ -456,25 +502,35 @@ impl Level {
             ],
         );
     }
+}
 
-    /// `x += P coarse_x` on all three planes.
-    fn prolong_add(&self, x: &mut [f32], coarse_x: &[f32], coarse: Dims) {
-        let Dims { w, h } = self.dims;
-        let (cw, ch) = (coarse.w, coarse.h);
-        let each = |(row, out): (usize, &mut [f32])| {
-            let (c, y) = (row / h, row % h);
-            let o = c * cw * ch + (y / 2) * cw;
-            for (pair, &v) in out.chunks_mut(2).zip(&coarse_x[o..o + cw]) {
-                for x in pair {
-                    *x += v;
-                }
-            }
-        };
-        if w * h >= PARALLEL_CELLS {
-            x.par_chunks_mut(w).enumerate().for_each(each);
-        } else {
-            x.chunks_mut(w).enumerate().for_each(each);
-        }
+/// `row[i] += coarse[i / 2]`: one row of the prolongation (a last odd cell included).
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma"
+))]
+fn add_pairs(row: &mut [f32], coarse: &[f32]) {
+    let half = row.len() / 2;
+    let mut pairs = row.chunks_exact_mut(2);
+    for (pair, &v) in (&mut pairs).zip(coarse) {
+        pair[0] += v;
+        pair[1] += v;
+    }
+    if let ([last], Some(&v)) = (pairs.into_remainder(), coarse.get(half)) {
+        *last += v;
+    }
+}
+
+/// `x = b / diag` where `keep` (the cells of one colour), else 0: a half-sweep from zero.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma"
+))]
+fn start_kernel(x: &mut [f32], b: &[f32], inv: &[f32], keep: &[bool]) {
+    let w = x.len();
+    let (b, inv, keep) = (&b[..w], &inv[..w], &keep[..w]);
+    for i in 0..w {
+        x[i] = if keep[i] { b[i] * inv[i] } else { 0.0 };
     }
 }
 
@@ -616,6 +672,91 @@ mod tests {
         let mut mg = Multigrid::new(Dims { w, h }).unwrap();
         mg.set_operator(0.04, &wd, &wx, &wy);
         (mg, wd, wx, wy)
+    }
+
+    /// One half-sweep of red-black Gauss-Seidel on one plane, cell by cell, with the
+    /// kernel's order of operations (from `x = 0` with `start`).
+    fn half_sweep(level: &Level, x: &mut [f32], b: &[f32], colour: usize, start: bool) {
+        let Dims { w, h } = level.dims;
+        for y in 0..h {
+            for i in 0..w {
+                let p = y * w + i;
+                if (i + y) % 2 != colour {
+                    if start {
+                        x[p] = 0.0;
+                    }
+                    continue;
+                }
+                if start {
+                    x[p] = b[p] * level.inv_diag[p];
+                    continue;
+                }
+                let (ey_up, up) = if y >= 1 {
+                    (level.ey[p - w], x[p - w])
+                } else {
+                    (0.0, 0.0)
+                };
+                let down = if y + 1 < h { x[p + w] } else { 0.0 };
+                let mut t = b[p] + ey_up * up + level.ey[p] * down;
+                if w >= 2 {
+                    t += if i == 0 {
+                        level.ex[p] * x[p + 1]
+                    } else if i == w - 1 {
+                        level.ex[p - 1] * x[p - 1]
+                    } else {
+                        level.ex[p - 1] * x[p - 1] + level.ex[p] * x[p + 1]
+                    };
+                }
+                x[p] = t * level.inv_diag[p];
+            }
+        }
+    }
+
+    /// The fused smoothing pass (wavefront, halo copies, prolongation folded in, parallel
+    /// bands on the large frame) gives the plain sweeps' bits, on frames whose last band is
+    /// short, and ignores `x` from zero (NaN there stays out).
+    #[test]
+    fn smoothing_is_plain_red_black_gauss_seidel() {
+        for (w, h) in [(37, 75), (64, 70), (5, 33), (40, 1), (1, 40), (200, 170)] {
+            let n = w * h;
+            let (mut mg, ..) = operator(w, h);
+            let cd = Dims {
+                w: w.div_ceil(2),
+                h: h.div_ceil(2),
+            };
+            let b: Vec<f32> = (0..3 * n).map(|i| (i as f32 * 0.61).sin()).collect();
+            let coarse_x: Vec<f32> = (0..3 * cd.len()).map(|i| (i as f32 * 0.3).cos()).collect();
+            let level = &mut mg.levels[0];
+            let colours = |first: usize| (0..HALF_SWEEPS).map(move |j| (first + j) % 2);
+
+            let mut x = vec![f32::NAN; 3 * n];
+            level.smooth(&mut x, &b, 0, true, None);
+            let mut plain = vec![f32::NAN; 3 * n];
+            for c in 0..3 {
+                let (x, b) = (&mut plain[c * n..(c + 1) * n], &b[c * n..(c + 1) * n]);
+                for (j, colour) in colours(0).enumerate() {
+                    half_sweep(level, x, b, colour, j == 0);
+                }
+            }
+            let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&x), bits(&plain), "{w}x{h} from zero");
+
+            let correction = Correction {
+                coarse_x: &coarse_x,
+                coarse: cd,
+            };
+            level.smooth(&mut x, &b, 1, false, Some(correction));
+            for c in 0..3 {
+                let (x, b) = (&mut plain[c * n..(c + 1) * n], &b[c * n..(c + 1) * n]);
+                for (p, x) in x.iter_mut().enumerate() {
+                    *x += coarse_x[c * cd.len() + (p / w / 2) * cd.w + (p % w) / 2];
+                }
+                for colour in colours(1) {
+                    half_sweep(level, x, b, colour, false);
+                }
+            }
+            assert_eq!(bits(&x), bits(&plain), "{w}x{h} with a correction");
+        }
     }
 
     /// The coarse operator is the Galerkin product `P^T A P`: for random coarse `v`,

@@ -309,8 +309,8 @@ impl Register for PoissonL1Config {
 /// weight planes (22 f32 planes) with 4 B a pixel to spare, and the preconditioner: the
 /// multigrid hierarchy ([`multigrid_bytes`], about 30 B a pixel) or the DCT's eigenvalues and
 /// transposed planes (4 planes). With the output, peak heap measured by a counting allocator
-/// (tests/memory.rs, `peak_table`): 130.5 and 130.4 B a pixel at 640 x 360 and 1280 x 720 with
-/// the multigrid (estimate 1.06x and 1.04x), 100.0 without a preconditioner (preset
+/// (tests/memory.rs, `peak_table`): 133.8 and 133.5 B a pixel at 640 x 360 and 1280 x 720 with
+/// the multigrid (estimate 1.06x and 1.03x), 100.0 without a preconditioner (preset
 /// `published`, estimate 1.05x).
 pub(crate) fn l1_memory(config: &PoissonL1Config, width: usize, height: usize) -> u64 {
     match (config.preconditioned, config.preconditioner) {
