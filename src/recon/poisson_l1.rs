@@ -74,7 +74,8 @@ pub struct PoissonL1Config {
 pub enum Preconditioner {
     /// The exact DCT solve of the unweighted system, diagonally rescaled to the weights.
     Dct,
-    /// An algebraic multigrid V-cycle on the weighted system itself.
+    /// An algebraic multigrid V-cycle on the weighted system itself (`src/recon/multigrid.rs`);
+    /// step 0, whose weights are all 1, starts from the DCT's exact solve.
     Multigrid,
 }
 
@@ -220,7 +221,8 @@ impl Params for PoissonL1Config {
             "preconditioner",
             Preconditioner::NAMES,
             "CG's preconditioner: 'dct' (the exact unweighted solve, rescaled to the weights) or \
-             'multigrid' (an algebraic V-cycle on the weighted system)",
+             'multigrid' (an algebraic V-cycle on the weighted system; step 0, at unit weights, \
+             solved by the DCT)",
             |c| c.preconditioner.index(),
             |c, v| c.preconditioner = Preconditioner::ALL[v],
         ),
@@ -306,16 +308,16 @@ impl Register for PoissonL1Config {
 }
 
 /// Bytes a [`PoissonL1`] holds (without the output image): six 3-plane CG vectors and four
-/// weight planes (22 f32 planes) with 4 B a pixel to spare, and the preconditioner: the
-/// multigrid hierarchy ([`multigrid_bytes`], about 30 B a pixel) or the DCT's eigenvalues and
-/// transposed planes (4 planes). With the output, peak heap measured by a counting allocator
-/// (tests/memory.rs, `peak_table`): 133.8 and 133.5 B a pixel at 640 x 360 and 1280 x 720 with
-/// the multigrid (estimate 1.06x and 1.03x), 100.0 without a preconditioner (preset
-/// `published`, estimate 1.05x).
+/// weight planes (22 f32 planes) with 4 B a pixel to spare, and the preconditioner: the DCT's
+/// eigenvalues and transposed planes (4 planes; with the multigrid too, for step 0) and the
+/// multigrid hierarchy ([`multigrid_bytes`], about 33 B a pixel). With the output, peak heap
+/// measured by a counting allocator (tests/memory.rs, `peak_table`): 149.9 and 149.6 B a pixel
+/// at 640 x 360 and 1280 x 720 with the multigrid (estimate 1.05x and 1.03x), 100.0 without a
+/// preconditioner (preset `published`, estimate 1.05x).
 pub(crate) fn l1_memory(config: &PoissonL1Config, width: usize, height: usize) -> u64 {
     match (config.preconditioned, config.preconditioner) {
         (true, Preconditioner::Multigrid) => {
-            bytes_for(width, height, 4 * 22 + 4, MIB).saturating_add(multigrid_bytes(width, height))
+            bytes_for(width, height, 4 * 26 + 4, MIB).saturating_add(multigrid_bytes(width, height))
         }
         (true, _) => bytes_for(width, height, 4 * 26 + 4, MIB),
         (false, _) => bytes_for(width, height, 4 * 22 + 4, MIB),
@@ -328,6 +330,10 @@ pub(crate) struct PoissonL1 {
     cfg: PoissonL1Config,
     precond: Option<DctPoisson>,
     multigrid: Option<Multigrid>,
+    /// With the multigrid: the DCT inverse of the unit-weight operator, which is step 0's
+    /// system, so step 0 starts from its exact solution (multigrid needs 7-8 iterations
+    /// there, more than in any later step).
+    start: Option<DctPoisson>,
     x: Vec<f32>,
     r: Vec<f32>,
     z: Vec<f32>,
@@ -360,15 +366,16 @@ impl PoissonL1 {
         };
         let n = dims.len();
         let v3 = || try_vec(3 * n, 0.0f32);
+        let multigrid = config.preconditioned && config.preconditioner == Preconditioner::Multigrid;
         Ok(PoissonL1 {
             dims,
             cfg: config,
             precond: (config.preconditioned && config.preconditioner == Preconditioner::Dct)
                 .then(|| DctPoisson::new(dims, config.alpha))
                 .transpose()?,
-            multigrid: (config.preconditioned
-                && config.preconditioner == Preconditioner::Multigrid)
-                .then(|| Multigrid::new(dims))
+            multigrid: multigrid.then(|| Multigrid::new(dims)).transpose()?,
+            start: multigrid
+                .then(|| DctPoisson::new(dims, config.alpha))
                 .transpose()?,
             x: v3()?,
             r: v3()?,
@@ -747,6 +754,11 @@ impl Reconstructor for PoissonL1 {
             let bb = self.weighted_rhs(frame);
             let t1 = Instant::now();
             reweight_time += t1 - t0;
+            if let (0, Some(dct)) = (step, self.start.as_mut()) {
+                // Unit weights: the DCT solves the system itself (CG then checks it).
+                self.x.copy_from_slice(&self.b);
+                dct.solve(&mut self.x);
+            }
             let outcome = self.cg(bb, &at)?;
             cg_time += t1.elapsed();
             total_iters += outcome.iterations;
@@ -777,7 +789,7 @@ impl Reconstructor for PoissonL1 {
             if self.precond.is_some() {
                 "DCT-preconditioned"
             } else if self.multigrid.is_some() {
-                "multigrid-preconditioned"
+                "multigrid-preconditioned; step 0 solved by the DCT"
             } else {
                 "unpreconditioned"
             }
