@@ -47,6 +47,17 @@ const HALF_SWEEPS: usize = 2 * SWEEPS;
 const BAND: usize = 32;
 const PARALLEL_CELLS: usize = 1 << 15;
 
+/// The fewest items one task of a parallel pass over a level of `cells` cells takes: 1 on
+/// large levels; all of them on those under [`PARALLEL_CELLS`], which then run as one task
+/// on the calling thread (their passes cost less than handing them out).
+fn min_len(cells: usize) -> usize {
+    if cells >= PARALLEL_CELLS {
+        1
+    } else {
+        usize::MAX
+    }
+}
+
 /// Row `k` (of rows or bands) of three planes, as the parallel passes hand them out.
 type Rows3<'a> = (usize, ((&'a mut [f32], &'a mut [f32]), &'a mut [f32]));
 
@@ -206,11 +217,11 @@ impl Level {
                 *v = if d > 0.0 { 1.0 / d } else { 0.0 };
             }
         };
-        if self.dims.len() >= PARALLEL_CELLS {
-            self.inv_diag.par_chunks_mut(w).enumerate().for_each(each);
-        } else {
-            self.inv_diag.chunks_mut(w).enumerate().for_each(each);
-        }
+        self.inv_diag
+            .par_chunks_mut(w)
+            .enumerate()
+            .with_min_len(min_len(self.dims.len()))
+            .for_each(each);
     }
 
     /// The Galerkin operator of `fine` under 2 x 2 aggregation (see the module comment).
@@ -241,21 +252,13 @@ impl Level {
                 (data[cx], ex[cx], ey[cx]) = (d, h, v);
             }
         };
-        if fine.dims.len() >= PARALLEL_CELLS {
-            self.data
-                .par_chunks_mut(cw)
-                .zip(self.ex.par_chunks_mut(cw))
-                .zip(self.ey.par_chunks_mut(cw))
-                .enumerate()
-                .for_each(each);
-        } else {
-            self.data
-                .chunks_mut(cw)
-                .zip(self.ex.chunks_mut(cw))
-                .zip(self.ey.chunks_mut(cw))
-                .enumerate()
-                .for_each(each);
-        }
+        self.data
+            .par_chunks_mut(cw)
+            .zip(self.ex.par_chunks_mut(cw))
+            .zip(self.ey.par_chunks_mut(cw))
+            .enumerate()
+            .with_min_len(min_len(fine.dims.len()))
+            .for_each(each);
     }
 
     /// Copies the [`HALF_SWEEPS`] rows above and below every band of `x` (all three planes)
@@ -279,11 +282,10 @@ impl Level {
             }
         };
         let halo = &mut halo[..6 * g * w * h.div_ceil(BAND)];
-        if n >= PARALLEL_CELLS {
-            halo.par_chunks_mut(6 * g * w).enumerate().for_each(each);
-        } else {
-            halo.chunks_mut(6 * g * w).enumerate().for_each(each);
-        }
+        halo.par_chunks_mut(6 * g * w)
+            .enumerate()
+            .with_min_len(min_len(n))
+            .for_each(each);
     }
 
     /// [`SWEEPS`] red-black Gauss-Seidel sweeps on all three planes of `x`, each the cells of
@@ -366,21 +368,13 @@ impl Level {
         let (x1, x2) = rest.split_at_mut(n);
         let (rows, per_band) = (BAND * w, 6 * g * w);
         let halo_bands = &mut halo[..per_band * h.div_ceil(BAND)];
-        if n >= PARALLEL_CELLS {
-            x0.par_chunks_mut(rows)
-                .zip(x1.par_chunks_mut(rows))
-                .zip(x2.par_chunks_mut(rows))
-                .enumerate()
-                .zip(halo_bands.par_chunks_mut(per_band))
-                .for_each(band);
-        } else {
-            x0.chunks_mut(rows)
-                .zip(x1.chunks_mut(rows))
-                .zip(x2.chunks_mut(rows))
-                .enumerate()
-                .zip(halo_bands.chunks_mut(per_band))
-                .for_each(band);
-        }
+        x0.par_chunks_mut(rows)
+            .zip(x1.par_chunks_mut(rows))
+            .zip(x2.par_chunks_mut(rows))
+            .enumerate()
+            .zip(halo_bands.par_chunks_mut(per_band))
+            .with_min_len(min_len(n))
+            .for_each(band);
         self.halo = halo;
     }
 
@@ -456,20 +450,12 @@ impl Level {
                 }
             }
         };
-        if n >= PARALLEL_CELLS {
-            b0.par_chunks_mut(cw)
-                .zip(b1.par_chunks_mut(cw))
-                .zip(b2.par_chunks_mut(cw))
-                .enumerate()
-                .for_each_init(Vec::new, each);
-        } else {
-            let mut row_buf = Vec::new();
-            b0.chunks_mut(cw)
-                .zip(b1.chunks_mut(cw))
-                .zip(b2.chunks_mut(cw))
-                .enumerate()
-                .for_each(|item| each(&mut row_buf, item));
-        }
+        b0.par_chunks_mut(cw)
+            .zip(b1.par_chunks_mut(cw))
+            .zip(b2.par_chunks_mut(cw))
+            .enumerate()
+            .with_min_len(min_len(n))
+            .for_each_init(Vec::new, each);
     }
 
     /// `out = (b - A x)` on row `y` of one plane, branch-free inside the row (the weights of
