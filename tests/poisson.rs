@@ -197,6 +197,39 @@ fn default_l1_is_converged() {
     }
 }
 
+/// Total CG iterations from an L1 report's summary note.
+fn cg_iterations(report: &gdrecon::Report) -> u32 {
+    report
+        .notes
+        .iter()
+        .find_map(|n| {
+            let (head, _) = n.split_once(" CG iterations")?;
+            head.rsplit(' ').next()?.parse().ok()
+        })
+        .unwrap_or_else(|| panic!("no CG iteration count in {:?}", report.notes))
+}
+
+/// `cg_change` stops a step once CG has stopped moving the image (in the error metric's
+/// units): fewer iterations than the residual rule alone, and the same answer to 0.5 %.
+/// The frame is large enough (200 x 150) that the multigrid needs several iterations a step.
+#[test]
+fn cg_change_stops_early_without_moving_the_answer() {
+    let (frame, clean) = noisy_frame(200, 150, 31);
+    let run = |config: PoissonL1Config| {
+        let (out, report) = reconstruct(&frame, &MethodConfig::PoissonL1(config)).unwrap();
+        let err = metrics::compare(&out, &clean).unwrap().rel_mse;
+        (err, cg_iterations(&report))
+    };
+    let default = PoissonL1Config::default();
+    assert!(default.cg_change > 0.0);
+    let mut residual_only = default;
+    residual_only.cg_change = 0.0;
+    let ((e, its), (e0, its0)) = (run(default), run(residual_only));
+    eprintln!("cg_change: {its} iterations, relMSE {e:e}; residual only: {its0}, {e0:e}");
+    assert!(its < its0, "{its} vs {its0} iterations");
+    assert!((e / e0 - 1.0).abs() < 5e-3, "{e:e} vs {e0:e}");
+}
+
 /// Inject gradient outliers: L1 must be closer to the clean image than L2, and its group-L1
 /// energy lower than L2's solution's.
 #[test]
