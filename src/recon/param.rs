@@ -12,6 +12,37 @@ use std::fmt;
 
 use crate::error::{Error, Result};
 
+/// Declares the choices of a [`Param::choice`] enum once, in order, with their names: gives
+/// the enum `ALL` (every variant, in that order, which is also their C index where the C API
+/// has one), `NAMES` (by index) and `index()`, whose `match` fails to compile when a variant
+/// is missing from the list.
+macro_rules! choices {
+    ($ty:ident { $($variant:ident => $name:literal),+ $(,)? }) => {
+        impl $ty {
+            /// Every choice, in the order of their names.
+            pub const ALL: [$ty; [$($name),+].len()] = [$($ty::$variant),+];
+            /// Their names, by index.
+            pub const NAMES: &'static [&'static str] = &[$($name),+];
+
+            /// The choice's index in `ALL` and `NAMES`.
+            #[allow(non_snake_case)]
+            pub fn index(self) -> usize {
+                // One local per variant, numbered in list order.
+                let mut next = 0usize;
+                $(
+                    let $variant = next;
+                    next += 1;
+                )+
+                let _ = next;
+                match self {
+                    $($ty::$variant => $variant),+
+                }
+            }
+        }
+    };
+}
+pub(crate) use choices;
+
 /// The type of a parameter.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 #[non_exhaustive]

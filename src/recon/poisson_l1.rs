@@ -34,7 +34,7 @@ use rayon::prelude::*;
 use super::dct::DctPoisson;
 use super::multigrid::{multigrid_bytes, Multigrid};
 use super::ops::{apply_weighted_dot, plane_sums, Dims, RowWeights};
-use super::param::{Param, Params, Preset, Range};
+use super::param::{choices, Param, Params, Preset, Range};
 use super::poisson_l2::{ALPHA_RANGE, DEFAULT_ALPHA};
 use super::prior::{prior_memory, DataTerm, OnPrior, DATA_DOC, PRIOR_ALPHA_DOC};
 use super::{bytes_for, Method, Reconstructor, Register, MIB};
@@ -84,20 +84,7 @@ pub enum Preconditioner {
     Multigrid,
 }
 
-impl Preconditioner {
-    /// Every preconditioner, in parameter order.
-    pub const ALL: [Preconditioner; 2] = [Preconditioner::Dct, Preconditioner::Multigrid];
-    /// Their names, by index.
-    pub const NAMES: &'static [&'static str] = &["dct", "multigrid"];
-
-    /// The preconditioner's index in [`Preconditioner::ALL`].
-    pub fn index(self) -> usize {
-        match self {
-            Preconditioner::Dct => 0,
-            Preconditioner::Multigrid => 1,
-        }
-    }
-}
+choices!(Preconditioner { Dct => "dct", Multigrid => "multigrid" });
 
 /// `prior_alpha` of L1: the prior path's weight, chosen on the validation split
 /// (docs/benchmarks.md, "The prior"; see [`PoissonL1Config::prior`]).

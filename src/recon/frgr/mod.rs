@@ -17,7 +17,7 @@ use std::borrow::Cow;
 use rayon::prelude::*;
 
 use super::converged::converged_mask;
-use super::param::{Param, Params, Preset};
+use super::param::{choices, Param, Params, Preset};
 use super::poisson_l1::{l1_memory, PoissonL1};
 use super::prior::{prior_memory, Prior, Quality};
 use super::{bytes_for, Method, PoissonL1Config, Reconstructor, Register, MIB};
@@ -48,27 +48,13 @@ pub enum FrgrGuide {
     Prior,
 }
 
-impl FrgrGuide {
-    /// Every guide, in the order of their names and C indices (`GDR_FRGR_GUIDE_*`).
-    pub const ALL: [FrgrGuide; 4] = [
-        FrgrGuide::Rdfc,
-        FrgrGuide::PoissonL1,
-        FrgrGuide::Colour,
-        FrgrGuide::Prior,
-    ];
-    /// Their names, by index.
-    pub const NAMES: &'static [&'static str] = &["rdfc", "l1", "none", "prior"];
-
-    /// The guide's index in [`FrgrGuide::ALL`].
-    pub fn index(self) -> usize {
-        match self {
-            FrgrGuide::Rdfc => 0,
-            FrgrGuide::PoissonL1 => 1,
-            FrgrGuide::Colour => 2,
-            FrgrGuide::Prior => 3,
-        }
-    }
-}
+// The C indices are `GDR_FRGR_GUIDE_*`.
+choices!(FrgrGuide {
+    Rdfc => "rdfc",
+    PoissonL1 => "l1",
+    Colour => "none",
+    Prior => "prior",
+});
 
 /// Settings of FRGR (`frgr`); names, defaults and ranges are in its parameter table
 /// below (listed in `docs/PARAMETERS.md`).

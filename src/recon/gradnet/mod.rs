@@ -44,20 +44,9 @@ pub enum GradNetPrecision {
     Fp32,
 }
 
+choices!(GradNetPrecision { Int8 => "int8", Fp32 => "fp32" });
+
 impl GradNetPrecision {
-    /// Every precision, in the order of their names.
-    pub const ALL: [GradNetPrecision; 2] = [GradNetPrecision::Int8, GradNetPrecision::Fp32];
-    /// Their names, by index.
-    pub const NAMES: &'static [&'static str] = &["int8", "fp32"];
-
-    /// The precision's index in [`GradNetPrecision::ALL`].
-    pub fn index(self) -> usize {
-        match self {
-            GradNetPrecision::Int8 => 0,
-            GradNetPrecision::Fp32 => 1,
-        }
-    }
-
     /// The embedded model for a frame with features (`true`) or without.
     pub fn variant(self, features: bool) -> ModelVariant {
         match (features, self) {
@@ -68,7 +57,7 @@ impl GradNetPrecision {
     }
 }
 
-use super::param::{Param, Params, Range};
+use super::param::{choices, Param, Params, Range};
 use super::{Reconstructor, Register};
 use crate::context::Context;
 use crate::error::Result;

@@ -26,6 +26,7 @@ use crate::error::Result;
 use crate::frame::{Frame, FrameBuilder, Layer};
 use crate::image::Image;
 use crate::progress::Progress;
+use crate::recon::param::choices;
 use crate::recon::{Method, Reconstructor};
 use crate::report::Report;
 use crate::validate::Policy;
@@ -42,21 +43,7 @@ pub enum Quality {
     Fast,
 }
 
-impl Quality {
-    /// Every quality, in the order of their names.
-    pub const ALL: [Quality; 3] = [Quality::High, Quality::Balanced, Quality::Fast];
-    /// Their names, by index.
-    pub const NAMES: &'static [&'static str] = &["high", "balanced", "fast"];
-
-    /// The quality's index in [`Quality::ALL`].
-    pub fn index(self) -> usize {
-        match self {
-            Quality::High => 0,
-            Quality::Balanced => 1,
-            Quality::Fast => 2,
-        }
-    }
-}
+choices!(Quality { High => "high", Balanced => "balanced", Fast => "fast" });
 
 /// The data term of screened Poisson (`data`): what the reconstruction is anchored to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -68,20 +55,7 @@ pub enum DataTerm {
     Prior,
 }
 
-impl DataTerm {
-    /// Every data term, in the order of their names.
-    pub const ALL: [DataTerm; 2] = [DataTerm::Colour, DataTerm::Prior];
-    /// Their names, by index.
-    pub const NAMES: &'static [&'static str] = &["color", "prior"];
-
-    /// The data term's index in [`DataTerm::ALL`].
-    pub fn index(self) -> usize {
-        match self {
-            DataTerm::Colour => 0,
-            DataTerm::Prior => 1,
-        }
-    }
-}
+choices!(DataTerm { Colour => "color", Prior => "prior" });
 
 /// The `data` parameter's meaning, shared by the screened Poisson methods' tables.
 pub(crate) const DATA_DOC: &str = "What the data term anchors to: the base image (color), or \
