@@ -406,6 +406,10 @@ gdr_error gdr_filter_execute(gdr_filter *filter);
 // Ask a running execute on `filter` to stop (it returns `GDR_ERROR_CANCELLED` promptly); callable from any thread, lock-free.
 //
 // A cancel when no execute is running has no effect (each execute starts uncancelled).
+// Every method returns within about 60 ms of the cancel at 1280 x 720. Open Image Denoise
+// (the prior paths) stops only between its operations, up to 0.35 s apart: the execute
+// returns at once, OIDN finishes its operation in the background on buffers the filter owns
+// (none of the caller's), and the filter's next execute waits for it (cancellably).
 gdr_error gdr_filter_cancel(gdr_filter *filter);
 
 // Point `*text` at the report of the last successful execute ("" before the first); valid until the next execute or release.

@@ -40,6 +40,14 @@ impl Image {
         })
     }
 
+    /// A copy, or [`Error::OutOfMemory`] when it cannot be allocated (`clone` aborts instead).
+    pub fn try_clone(&self) -> Result<Self> {
+        let (w, h) = self.size();
+        let mut copy = Image::try_zeros(self.channels(), w, h)?;
+        copy.as_mut_slice().copy_from_slice(self.as_slice());
+        Ok(copy)
+    }
+
     /// Wraps an array of shape `(channels, height, width)`; it is made contiguous if needed.
     pub fn from_planes(planes: Array3<f32>) -> Self {
         let planes = if planes.is_standard_layout() {

@@ -9,8 +9,9 @@ use std::time::{Duration, Instant};
 
 use gdrecon::{synth, Context, ContextOptions, Error, Method, MethodConfig, Plan, Progress};
 
-/// Generous: the target is 100 ms; a loaded CI machine must not fail on noise.
-const BOUND: Duration = Duration::from_millis(750);
+/// Three times the target (100 ms): a loaded CI machine must not fail on noise, but a method
+/// that waits for an operation of its own (OIDN's longest takes 0.35 s here) must.
+const BOUND: Duration = Duration::from_millis(300);
 
 #[test]
 fn every_method_returns_promptly_after_a_cancel_at_720p() {
@@ -63,4 +64,40 @@ fn every_method_returns_promptly_after_a_cancel_at_720p() {
         }
     }
     println!("worst cancel latency: {:.1} ms", worst.as_secs_f64() * 1e3);
+}
+
+/// A cancelled execute leaves the plan as good as new: the next execute gives, bit for bit,
+/// what a plan that was never cancelled gives. (The prior's OIDN run goes on in the
+/// background after a cancel returns, until its current operation ends: the next execute
+/// waits for it and must not see any of it.)
+#[test]
+fn an_execute_after_a_cancel_gives_the_uncancelled_image() {
+    let frame = synth::synthetic_frame(320, 192, 4.0, 11);
+    let context = Context::new(ContextOptions::with_threads(Some(2))).unwrap();
+    for method in Method::ALL.into_iter().filter(|m| m.is_built()) {
+        let config = MethodConfig::default_for(method);
+        let mut fresh = Plan::new(&context, &config, 320, 192).unwrap();
+        let (want, _) = fresh.execute(&frame, &Progress::none()).unwrap();
+        let mut plan = Plan::new(&context, &config, 320, 192).unwrap();
+        // Twice: a cancel at once, then one in the middle of the work.
+        for delay_ms in [0u64, 20] {
+            let flag = AtomicBool::new(false);
+            let progress = Progress::none().with_cancel(&flag);
+            std::thread::scope(|s| {
+                s.spawn(|| {
+                    std::thread::sleep(Duration::from_millis(delay_ms));
+                    flag.store(true, Ordering::SeqCst);
+                });
+                match plan.execute(&frame, &progress) {
+                    Ok(_) | Err(Error::Cancelled) => {}
+                    Err(e) => panic!("{method}: {e}"),
+                }
+            });
+        }
+        let (got, _) = plan.execute(&frame, &Progress::none()).unwrap();
+        assert!(
+            got.as_slice() == want.as_slice(),
+            "{method}: the image after a cancel differs from a fresh plan's"
+        );
+    }
 }

@@ -74,7 +74,7 @@ fn the_clean_bundle_holds_the_generated_values() {
 fn every_corpus_file_is_read_exactly_or_refused_naming_file_and_fault() {
     let clean = clean();
     let cases = cases();
-    assert!(cases.len() >= 18, "the corpus lost files: {}", cases.len());
+    assert!(cases.len() >= 33, "the corpus lost files: {}", cases.len());
     // Inside a pool the blocks are decompressed in parallel: the outcome must not change.
     let context = gdrecon::Context::new(gdrecon::ContextOptions::with_threads(Some(2))).unwrap();
     for case in &cases {
@@ -111,6 +111,12 @@ fn every_corpus_file_is_read_exactly_or_refused_naming_file_and_fault() {
                     case.file,
                     case.fault
                 );
+            }
+            "as" => {
+                let frame = result.unwrap_or_else(|e| panic!("{} ({}): {e}", case.file, case.why));
+                let reference = io::read_bundle(corpus().join(&case.fault), Policy::Strict)
+                    .unwrap_or_else(|e| panic!("{}: {e}", case.fault));
+                assert_same(&frame, &reference, &case.file);
             }
             other => panic!("corpus.tsv: unknown expectation {other}"),
         }

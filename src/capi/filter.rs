@@ -644,6 +644,10 @@ pub unsafe extern "C" fn gdr_filter_execute(filter: *mut gdr_filter) -> gdr_erro
 /// Ask a running execute on `filter` to stop (it returns `GDR_ERROR_CANCELLED` promptly); callable from any thread, lock-free.
 ///
 /// A cancel when no execute is running has no effect (each execute starts uncancelled).
+/// Every method returns within about 60 ms of the cancel at 1280 x 720. Open Image Denoise
+/// (the prior paths) stops only between its operations, up to 0.35 s apart: the execute
+/// returns at once, OIDN finishes its operation in the background on buffers the filter owns
+/// (none of the caller's), and the filter's next execute waits for it (cancellably).
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_cancel(filter: *mut gdr_filter) -> gdr_error {
     guard("gdr_filter_cancel", || {

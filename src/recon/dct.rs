@@ -66,7 +66,9 @@ impl DctPoisson {
             rows,
             cols,
             inv_eigen,
-            transposed: Vec::new(),
+            // The three colour planes every caller solves for, allocated with the plan (an
+            // execution then allocates nothing large).
+            transposed: try_vec(3 * dims.len(), 0.0)?,
         })
     }
 

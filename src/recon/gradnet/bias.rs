@@ -10,7 +10,8 @@
 
 use rayon::prelude::*;
 
-use crate::image::Image;
+use crate::error::Result;
+use crate::image::{try_vec, Image};
 
 /// Kernel radius of the release.
 pub(crate) const RADIUS: usize = 45;
@@ -29,9 +30,10 @@ pub(crate) fn kernel() -> Vec<f32> {
 }
 
 /// Separable zero-padded blur of a `w x h` plane with `taps` (odd length).
-pub(crate) fn blur(src: &[f32], w: usize, h: usize, taps: &[f32], out: &mut [f32]) {
+/// Fails only when its row-pass plane cannot be allocated.
+pub(crate) fn blur(src: &[f32], w: usize, h: usize, taps: &[f32], out: &mut [f32]) -> Result<()> {
     let r = taps.len() / 2;
-    let mut rows = vec![0.0f32; w * h];
+    let mut rows = try_vec(w * h, 0.0f32)?;
     // Horizontal: out[x] = sum_t taps[t] * src[x + t - r], zero outside.
     rows.par_chunks_mut(w).zip(src.par_chunks(w)).for_each_init(
         || vec![0.0f32; w + 2 * r],
@@ -57,13 +59,15 @@ pub(crate) fn blur(src: &[f32], w: usize, h: usize, taps: &[f32], out: &mut [f32
             }
         }
     });
+    Ok(())
 }
 
 /// Applies the bias correction to `out` (3 channels) against the input colour `color`.
 ///
 /// Four frame-sized planes at most (a channel sum, the two blurs, the blur's row pass): at
 /// 3840 x 2160 that is 133 MB, where computing every intermediate into its own plane took 233.
-pub(crate) fn correct(out: &mut Image, color: &Image) {
+/// Fails (with `out` unchanged) only when a plane cannot be allocated.
+pub(crate) fn correct(out: &mut Image, color: &Image) -> Result<()> {
     let (w, h) = out.size();
     let n = w * h;
     let taps = kernel();
@@ -73,19 +77,20 @@ pub(crate) fn correct(out: &mut Image, color: &Image) {
             .enumerate()
             .for_each(|(i, v)| *v = s[i] + s[n + i] + s[2 * n + i]);
     };
-    let mut sum = vec![0.0f32; n];
+    let mut sum = try_vec(n, 0.0f32)?;
     channel_sum(color, &mut sum);
-    let mut blur_in = vec![0.0f32; n];
-    blur(&sum, w, h, &taps, &mut blur_in);
+    let mut blur_in = try_vec(n, 0.0f32)?;
+    blur(&sum, w, h, &taps, &mut blur_in)?;
     channel_sum(out, &mut sum);
-    let mut blur_out = vec![0.0f32; n];
-    blur(&sum, w, h, &taps, &mut blur_out);
+    let mut blur_out = try_vec(n, 0.0f32)?;
+    blur(&sum, w, h, &taps, &mut blur_out)?;
     drop(sum);
     out.as_mut_slice().par_chunks_mut(n).for_each(|plane| {
         for ((v, &bi), &bo) in plane.iter_mut().zip(&blur_in).zip(&blur_out) {
             *v *= (bi + EPS) / (bo + EPS);
         }
     });
+    Ok(())
 }
 
 #[cfg(test)]
@@ -132,7 +137,7 @@ mod tests {
                 .map(|i| ((i * 37 % 101) as f32 / 50.0) - 0.3)
                 .collect();
             let mut out = vec![0.0; w * h];
-            blur(&src, w, h, &kernel(), &mut out);
+            blur(&src, w, h, &kernel(), &mut out).unwrap();
             let want = naive(&src, w, h, &kernel());
             for (g, e) in out.iter().zip(&want) {
                 assert!((*g as f64 - e).abs() < 1e-5, "{w}x{h}: {g} vs {e}");
@@ -144,13 +149,13 @@ mod tests {
     fn identical_input_and_output_give_unit_gain() {
         let img = Image::from_fn(3, 30, 20, |(c, x, y)| (c + y * x) as f32 * 0.01 + 0.1);
         let mut out = img.clone();
-        correct(&mut out, &img);
+        correct(&mut out, &img).unwrap();
         for (a, b) in out.as_slice().iter().zip(img.as_slice()) {
             assert!((a - b).abs() <= 1e-6 * b.abs());
         }
         // Twice the input everywhere: gain 1/2 everywhere.
         let mut doubled = Image::from_fn(3, 30, 20, |(c, x, y)| 2.0 * img.at(c, x, y));
-        correct(&mut doubled, &img);
+        correct(&mut doubled, &img).unwrap();
         for (a, b) in doubled.as_slice().iter().zip(img.as_slice()) {
             assert!((a - b).abs() <= 1e-5 * b.abs());
         }

@@ -636,7 +636,7 @@ mod enabled {
             }
             progress.check()?;
             if self.config.bias_correction {
-                report.time("bias correction", || bias::correct(out, frame.color()));
+                report.time("bias correction", || bias::correct(out, frame.color()))?;
             } else {
                 report.skip("bias correction (disabled)");
             }

@@ -118,15 +118,18 @@ impl Reconstructor for OnPrior {
         report: &mut Report,
         progress: &Progress,
     ) -> Result<()> {
-        let prior = self.prior.get(frame, report, progress)?.into_owned();
+        let prior = match self.prior.get(frame, report, progress)? {
+            Cow::Borrowed(given) => given.try_clone()?,
+            Cow::Owned(computed) => computed,
+        };
         // Only what screened Poisson reads: the prior as its colour and the gradients (copying
         // the other layers cost 60 MB and a sanitising pass at 720p). All are already clean
         // (a given prior is sanitised like colour, OIDN's output is confined), so building
         // replaces nothing.
         let anchored = FrameBuilder::new()
             .image(Layer::Color, prior)
-            .image(Layer::Dx, frame.dx().clone())
-            .image(Layer::Dy, frame.dy().clone())
+            .image(Layer::Dx, frame.dx().try_clone()?)
+            .image(Layer::Dy, frame.dy().try_clone()?)
             .spp(frame.spp())
             .build(Policy::Replace)?;
         report.note("data term: the prior");
@@ -143,7 +146,7 @@ pub(crate) struct Prior {
     height: usize,
     /// OIDN's filter and the planar image it writes, made on the first frame without a prior.
     #[cfg(feature = "oidn")]
-    computed: Option<(oidn::Filter, Image)>,
+    computed: Option<(oidn::Runner, Image)>,
 }
 
 impl Prior {
@@ -182,7 +185,11 @@ impl Prior {
         report: &mut Report,
         progress: &Progress,
     ) -> Result<&Image> {
-        if self.computed.is_none() {
+        if self
+            .computed
+            .as_ref()
+            .is_none_or(|(runner, _)| runner.is_lost())
+        {
             let device = self.context.denoiser()?;
             let quality = match self.quality {
                 Quality::High => oidn::QUALITY_HIGH,
@@ -190,13 +197,17 @@ impl Prior {
                 Quality::Fast => oidn::QUALITY_FAST,
             };
             let filter = oidn::Filter::new(device, self.width, self.height, quality)?;
-            self.computed = Some((filter, Image::try_zeros(3, self.width, self.height)?));
+            let image = Image::try_zeros(3, self.width, self.height)?;
+            self.computed = Some((oidn::Runner::new(filter), image));
         }
-        let (filter, image) = self.computed.as_mut().expect("made above");
+        let (runner, image) = self.computed.as_mut().expect("made above");
         let (albedo, normal) = (frame.albedo(), frame.normal());
-        let version = filter.version();
-        let path = filter.path().display().to_string();
+        let mut version = 0;
+        let mut path = String::new();
         report.time("prior (oidn)", || {
+            let filter = runner.filter(progress)?;
+            version = filter.version();
+            path = filter.path().display().to_string();
             let (c, a, n) = filter.inputs();
             interleave(frame.color(), c, 0.0, f32::MAX);
             if let Some(albedo) = albedo {
@@ -205,7 +216,7 @@ impl Prior {
             if let Some(normal) = normal {
                 interleave(normal, n, -1.0, 1.0);
             }
-            let out = filter.execute(albedo.is_some(), normal.is_some(), progress)?;
+            let out = runner.run(albedo.is_some(), normal.is_some(), progress)?;
             deinterleave(out, image);
             Ok::<_, crate::Error>(())
         })?;
