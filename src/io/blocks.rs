@@ -15,7 +15,9 @@
 use std::io::{Read, Seek, Write};
 use std::sync::Mutex;
 
-use exr::block::chunk::{Chunk, CompressedBlock, CompressedScanLineBlock};
+use exr::block::chunk::{
+    Chunk, CompressedBlock, CompressedScanLineBlock, CompressedTileBlock, TileCoordinates,
+};
 use exr::block::reader::ChunksReader;
 use exr::block::writer::ChunksWriter;
 use exr::block::{BlockIndex, UncompressedBlock};
@@ -25,6 +27,7 @@ use exr::meta::MetaData;
 use exr::prelude::f16;
 use rayon::prelude::*;
 
+use super::chunks::Offsets;
 use crate::image::Image;
 
 /// Where one stored channel goes: image `image`, plane `plane` of the destinations.
@@ -37,16 +40,40 @@ pub(super) struct Target {
 /// Decodes the largest level of every part into `images`: `targets[part][channel]` names the
 /// plane of each stored channel (in the header's channel order), `None` skips it. Every image
 /// must be as large as the parts' data window (all parts share one, checked by the caller).
-/// Errors are the decoder's, or a part that is missing blocks.
+/// `layout` is the file's headers and offset tables as [`super::chunks::check`] accepted
+/// them. Errors are the decoder's, or a part that is missing blocks.
 pub(super) fn decode(
-    reader: impl Read + Seek + Send,
+    mut reader: impl Read + Seek + Send,
+    layout: (&MetaData, &Offsets),
     targets: &[Vec<Option<Target>>],
     images: &mut [Image],
 ) -> Result<(), Fault> {
+    let (meta, offsets) = layout;
+    if meta.headers.iter().any(subsampled) {
+        // The `exr` crate's reader refuses these headers: the chunks are read here.
+        let chunks = read_chunks(&mut reader, meta, offsets)?;
+        return place_all(chunks.into_iter().map(Ok), meta, targets, images);
+    }
     let chunks = exr::block::read(reader, false)?.filter_chunks(false, |_, tile, _| {
         tile.level_index == exr::math::Vec2(0, 0)
     })?;
     let meta: MetaData = chunks.meta_data().clone();
+    place_all(
+        chunks.map(|c| c.map_err(Fault::from)),
+        &meta,
+        targets,
+        images,
+    )
+}
+
+/// Decompresses `chunks` and places them (see [`decode`]), checking that every part received
+/// all its pixels.
+fn place_all(
+    chunks: impl Iterator<Item = Result<Chunk, Fault>> + Send,
+    meta: &MetaData,
+    targets: &[Vec<Option<Target>>],
+    images: &mut [Image],
+) -> Result<(), Fault> {
     let mut received = vec![0usize; meta.headers.len()];
     let mut place = |block: UncompressedBlock, images: &mut [Image]| -> Result<(), Fault> {
         let part = block.index.layer;
@@ -63,14 +90,14 @@ pub(super) fn decode(
         chunks
             .par_bridge()
             .try_for_each(|chunk| -> Result<(), Fault> {
-                let block = UncompressedBlock::decompress_chunk(chunk?, &meta, false)?;
+                let block = decompress(chunk?, meta)?;
                 let mut guard = shared.lock().map_err(|_| "a decoding thread panicked")?;
                 let (images, place) = &mut *guard;
                 place(block, images)
             })?;
     } else {
         for chunk in chunks {
-            let block = UncompressedBlock::decompress_chunk(chunk?, &meta, false)?;
+            let block = decompress(chunk?, meta)?;
             place(block, images)?;
         }
     }
@@ -88,6 +115,79 @@ pub(super) fn decode(
     Ok(())
 }
 
+/// Whether a part holds a subsampled channel.
+fn subsampled(header: &Header) -> bool {
+    header
+        .channels
+        .list
+        .iter()
+        .any(|c| c.sampling != exr::math::Vec2(1, 1))
+}
+
+/// The full-resolution chunks of every part, read where the checked offset tables say
+/// (unwritten reduced levels, offset 0, are skipped; reduced levels are not read).
+fn read_chunks(
+    reader: &mut (impl Read + Seek),
+    meta: &MetaData,
+    offsets: &Offsets,
+) -> Result<Vec<Chunk>, Fault> {
+    let multipart = meta.headers.len() > 1;
+    let mut chunks = Vec::new();
+    let int = |reader: &mut dyn Read| -> Result<i32, Fault> {
+        let mut b = [0u8; 4];
+        reader.read_exact(&mut b).map_err(exr::error::Error::from)?;
+        Ok(i32::from_le_bytes(b))
+    };
+    for (part, (header, table)) in meta.headers.iter().zip(offsets).enumerate() {
+        if header.deep {
+            return Err("deep data is not a frame bundle".into());
+        }
+        let tiled = header.blocks != exr::meta::BlockDescription::ScanLines;
+        for &offset in table.iter().filter(|&&o| o != 0) {
+            reader
+                .seek(std::io::SeekFrom::Start(offset))
+                .map_err(exr::error::Error::from)?;
+            if multipart {
+                int(reader)?; // the part number, checked by `chunks::check`
+            }
+            let coords: Vec<i32> = (0..if tiled { 4 } else { 1 })
+                .map(|_| int(reader))
+                .collect::<Result<_, _>>()?;
+            let size = usize::try_from(int(reader)?).map_err(|_| "a chunk of negative size")?;
+            if tiled && (coords[2], coords[3]) != (0, 0) {
+                continue; // a reduced level: never decoded
+            }
+            let mut data = Vec::new();
+            data.try_reserve_exact(size)
+                .map_err(|_| "a chunk too large to allocate")?;
+            data.resize(size, 0);
+            reader
+                .read_exact(&mut data)
+                .map_err(exr::error::Error::from)?;
+            let compressed_block = if tiled {
+                let at = |v: i32| usize::try_from(v).map_err(|_| "a negative tile coordinate");
+                CompressedBlock::Tile(CompressedTileBlock {
+                    coordinates: TileCoordinates {
+                        tile_index: exr::math::Vec2(at(coords[0])?, at(coords[1])?),
+                        level_index: exr::math::Vec2(0, 0),
+                    },
+                    compressed_pixels_le: data,
+                })
+            } else {
+                CompressedBlock::ScanLine(CompressedScanLineBlock {
+                    y_coordinate: coords[0],
+                    compressed_pixels_le: data,
+                })
+            };
+            chunks.push(Chunk {
+                layer_index: part,
+                compressed_block,
+            });
+        }
+    }
+    Ok(chunks)
+}
+
 /// Converts the wanted lines of one block into their planes. A block stores, for each of its
 /// rows, each channel's samples of that row, in the header's channel order.
 fn scatter(
@@ -102,9 +202,14 @@ fn scatter(
         ..
     } = block.index;
     let mut offset = 0;
+    let origin = header.own_attributes.layer_position;
     for row in 0..size.1 {
+        let y = origin.1 + (pos.1 + row) as i32;
         for (c, channel) in header.channels.list.iter().enumerate() {
-            let len = size.0 * channel.sample_type.bytes_per_sample();
+            let Some(samples) = line_samples(channel, y, size.0) else {
+                continue; // a subsampled channel with no samples on this line
+            };
+            let len = samples * channel.sample_type.bytes_per_sample();
             let bytes = block
                 .data
                 .get(offset..offset + len)
@@ -113,6 +218,9 @@ fn scatter(
             let Some(Some(target)) = wanted.get(c) else {
                 continue;
             };
+            if samples != size.0 {
+                return Err("a subsampled channel was asked for".into());
+            }
             let image = images
                 .get_mut(target.image)
                 .ok_or("channel target out of range")?;
@@ -132,6 +240,149 @@ fn scatter(
         return Err("a block holds more bytes than its size needs".into());
     }
     Ok(())
+}
+
+/// The samples of `channel` on absolute line `y` of a `width`-pixel line, `None` when the line
+/// holds none. OpenEXR samples a channel subsampled `sx` x `sy` at the pixels whose absolute
+/// coordinates are multiples of `sx` and `sy`; its headers require the data window's origin and
+/// size to be multiples of them, so a line that has samples has `width / sx`.
+fn line_samples(channel: &ChannelDescription, y: i32, width: usize) -> Option<usize> {
+    let (sx, sy) = (channel.sampling.0.max(1), channel.sampling.1.max(1));
+    (y.rem_euclid(sy as i32) == 0).then_some(width / sx)
+}
+
+/// Decompresses one chunk: the `exr` crate's decoders, except for scan-line parts holding
+/// subsampled channels, which the crate decodes to the wrong size (it sizes every block as
+/// if no channel were subsampled): those are decoded here, for the codecs that are byte
+/// streams (none, RLE, ZIPS, ZIP), and refused naming the codec otherwise.
+fn decompress(chunk: Chunk, meta: &MetaData) -> Result<UncompressedBlock, Fault> {
+    let header = meta
+        .headers
+        .get(chunk.layer_index)
+        .ok_or("chunk of an unknown part")?;
+    let subsampled = subsampled(header);
+    let CompressedBlock::ScanLine(block) = &chunk.compressed_block else {
+        if subsampled {
+            return Err("subsampled channels in a tiled or deep part".into());
+        }
+        return Ok(UncompressedBlock::decompress_chunk(chunk, meta, false)?);
+    };
+    if !subsampled {
+        return Ok(UncompressedBlock::decompress_chunk(chunk, meta, false)?);
+    }
+    let (width, height) = (header.layer_size.0, header.layer_size.1);
+    let origin = header.own_attributes.layer_position;
+    let first = block
+        .y_coordinate
+        .checked_sub(origin.1)
+        .and_then(|y| usize::try_from(y).ok())
+        .filter(|&y| y < height)
+        .ok_or("a chunk's y lies outside the data window")?;
+    let rows = header
+        .compression
+        .scan_lines_per_block()
+        .min(height - first);
+    let raw_len: usize = (0..rows)
+        .map(|row| {
+            let y = block.y_coordinate + row as i32;
+            header
+                .channels
+                .list
+                .iter()
+                .filter_map(|c| Some(line_samples(c, y, width)? * c.sample_type.bytes_per_sample()))
+                .sum::<usize>()
+        })
+        .sum();
+    let packed = &block.compressed_pixels_le;
+    use exr::compression::Compression as C;
+    let data = if packed.len() == raw_len {
+        packed.clone() // stored raw: compressing did not make it smaller
+    } else {
+        let mut bytes = match header.compression {
+            C::ZIP1 | C::ZIP16 => {
+                miniz_oxide::inflate::decompress_to_vec_zlib_with_limit(packed, raw_len)
+                    .map_err(|_| "a ZIP block does not inflate to its size")?
+            }
+            C::RLE => unpack_rle(packed, raw_len)?,
+            C::Uncompressed => return Err("an uncompressed block's size is wrong".into()),
+            other => {
+                return Err(Fault::Exr(exr::error::Error::NotSupported(
+                    format!(
+                        "subsampled channels are read only from files compressed with NONE, \
+                         RLE, ZIPS or ZIP, not {other}"
+                    )
+                    .into(),
+                )))
+            }
+        };
+        if bytes.len() != raw_len {
+            return Err("a block does not decompress to its size".into());
+        }
+        unpredict(&mut bytes);
+        interleave(&bytes)
+    };
+    if cfg!(target_endian = "big") {
+        // Samples are little-endian in the file; `scatter` reads native-endian ones.
+        return Err("subsampled channels are decoded on little-endian machines only".into());
+    }
+    Ok(UncompressedBlock {
+        data,
+        index: BlockIndex {
+            layer: chunk.layer_index,
+            pixel_position: exr::math::Vec2(0, first),
+            pixel_size: exr::math::Vec2(width, rows),
+            level: exr::math::Vec2(0, 0),
+        },
+    })
+}
+
+/// OpenEXR's run-length code: a negative count byte `-n` is followed by `n` literal bytes, a
+/// count `n >= 0` by one byte repeated `n + 1` times. At most `limit` bytes are produced.
+fn unpack_rle(mut packed: &[u8], limit: usize) -> Result<Vec<u8>, Fault> {
+    let mut out = Vec::new();
+    out.try_reserve_exact(limit)
+        .map_err(|_| "a block too large to allocate")?;
+    while let Some((&count, rest)) = packed.split_first() {
+        let count = count as i8;
+        if count < 0 {
+            let n = count.unsigned_abs() as usize;
+            let literal = rest
+                .get(..n)
+                .ok_or("an RLE block ends inside a literal run")?;
+            out.extend_from_slice(literal);
+            packed = &rest[n..];
+        } else {
+            let (&byte, rest) = rest.split_first().ok_or("an RLE block ends inside a run")?;
+            out.resize(out.len() + count as usize + 1, byte);
+            packed = rest;
+        }
+        if out.len() > limit {
+            return Err("an RLE block expands past its size".into());
+        }
+    }
+    Ok(out)
+}
+
+/// Undoes OpenEXR's byte predictor (each byte stored as its difference to the previous one,
+/// plus 128): the inverse of [`zip_block`]'s.
+fn unpredict(bytes: &mut [u8]) {
+    for i in 1..bytes.len() {
+        bytes[i] = bytes[i - 1].wrapping_add(bytes[i]).wrapping_sub(128);
+    }
+}
+
+/// Undoes OpenEXR's byte split (the even-indexed bytes first, then the odd ones).
+fn interleave(split: &[u8]) -> Vec<u8> {
+    let half = split.len().div_ceil(2);
+    let (even, odd) = split.split_at(half);
+    let mut out = Vec::with_capacity(split.len());
+    for (i, &e) in even.iter().enumerate() {
+        out.push(e);
+        if let Some(&o) = odd.get(i) {
+            out.push(o);
+        }
+    }
+    out
 }
 
 /// Native-endian samples of one type to f32.
@@ -281,5 +532,34 @@ impl From<String> for Fault {
 impl From<exr::error::Error> for Fault {
     fn from(e: exr::error::Error) -> Self {
         Fault::Exr(e)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Our ZIP writer's block, inflated, unpredicted and interleaved, is the raw bytes again
+    /// (odd and even lengths).
+    #[test]
+    fn zip_blocks_decode_to_their_bytes() {
+        for len in [0usize, 1, 2, 7, 64, 1001] {
+            let raw: Vec<u8> = (0..len).map(|i| (i * 37 % 251) as u8).collect();
+            let packed = zip_block(&raw);
+            let mut bytes = miniz_oxide::inflate::decompress_to_vec_zlib(&packed).unwrap();
+            unpredict(&mut bytes);
+            assert_eq!(interleave(&bytes), raw, "length {len}");
+        }
+    }
+
+    /// OpenEXR's RLE: literal runs (negative counts) and repeats (count + 1 copies), and the
+    /// faults: a run cut short, a block longer than its size.
+    #[test]
+    fn rle_runs_unpack_and_damage_is_refused() {
+        let packed = [0xfdu8, 1, 2, 3, 2, 9];
+        assert_eq!(unpack_rle(&packed, 6).unwrap(), [1, 2, 3, 9, 9, 9]);
+        assert!(unpack_rle(&[0xfe, 1], 6).is_err());
+        assert!(unpack_rle(&[3], 6).is_err());
+        assert!(unpack_rle(&[9, 5], 6).is_err());
     }
 }

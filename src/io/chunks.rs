@@ -17,9 +17,16 @@ use exr::meta::BlockDescription;
 /// What is wrong with a file's chunk layout (the caller adds the path).
 pub type Fault = String;
 
+/// The offset tables of a file, one per part, as checked by [`check`].
+pub type Offsets = Vec<Vec<u64>>;
+
 /// Checks the chunk layout of a file whose headers `headers` were parsed from `reader`
-/// (rewound afterwards). `len` is the file's length in bytes.
-pub fn check(reader: &mut (impl Read + Seek), headers: &[Header], len: u64) -> Result<(), Fault> {
+/// (rewound afterwards), and returns its offset tables. `len` is the file's length in bytes.
+pub fn check(
+    reader: &mut (impl Read + Seek),
+    headers: &[Header],
+    len: u64,
+) -> Result<Offsets, Fault> {
     let io = |e: std::io::Error| format!("reading the chunk layout: {e}");
     reader.seek(SeekFrom::Start(0)).map_err(io)?;
     headers_end(reader)?; // leaves the reader at the first offset table
@@ -106,7 +113,7 @@ pub fn check(reader: &mut (impl Read + Seek), headers: &[Header], len: u64) -> R
         ));
     }
     reader.seek(SeekFrom::Start(0)).map_err(io)?;
-    Ok(())
+    Ok(offsets)
 }
 
 /// The coordinates each chunk must carry, in offset-table order: `[y]` for scan lines

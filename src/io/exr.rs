@@ -19,7 +19,7 @@ use exr::prelude as x;
 use exr::prelude::AttributeValue;
 
 use super::blocks::{self, Fault, Target};
-use super::chunks;
+use super::chunks::{self, Offsets};
 use crate::error::{Error, Result};
 use crate::frame::{Frame, FrameBuilder, Layer};
 use crate::image::Image;
@@ -124,7 +124,7 @@ const SIZE_SLACK: u64 = 64 << 20;
 /// features the decoder lacks (named), sizes the file cannot plausibly hold, and a chunk layout
 /// that does not store every block exactly once where it belongs ([`chunks::check`]). Returns
 /// the headers and rewinds the reader.
-fn check_layout(mut reader: impl Read + Seek, path: &Path) -> Result<MetaData> {
+fn check_layout(mut reader: impl Read + Seek, path: &Path) -> Result<(MetaData, Offsets)> {
     let file_len = reader
         .seek(SeekFrom::End(0))
         .and_then(|len| reader.seek(SeekFrom::Start(0)).map(|_| len))
@@ -168,22 +168,42 @@ fn check_layout(mut reader: impl Read + Seek, path: &Path) -> Result<MetaData> {
             ),
         });
     }
-    // The decoder supports no subsampled channel, not even one gdrecon would ignore.
-    if let Some(c) = meta
-        .headers
-        .iter()
-        .flat_map(|h| &h.channels.list)
-        .find(|c| c.sampling != exr::math::Vec2(1, 1))
-    {
-        return Err(Error::Exr {
-            path: path.to_owned(),
-            message: format!(
-                "OpenEXR feature not supported: channel '{}' is subsampled {} x {}: subsampled \
-                 channels are not supported, not even in layers gdrecon ignores; write every \
-                 channel at full resolution",
-                c.name, c.sampling.0, c.sampling.1
-            ),
-        });
+    // Subsampled channels are decoded here (`blocks`) for scan-line parts compressed with a
+    // byte-stream codec: the `exr` crate sizes their blocks wrongly. The frame's own layers
+    // must be full resolution ([`parse_bundle`]); other layers may be subsampled.
+    for header in &meta.headers {
+        let Some(c) = header
+            .channels
+            .list
+            .iter()
+            .find(|c| c.sampling != exr::math::Vec2(1, 1))
+        else {
+            continue;
+        };
+        use exr::compression::Compression as C;
+        let why = if header.blocks != exr::meta::BlockDescription::ScanLines || header.deep {
+            Some("in a tiled or deep part (OpenEXR allows them in scan-line parts only)".to_owned())
+        } else if !matches!(
+            header.compression,
+            C::Uncompressed | C::RLE | C::ZIP1 | C::ZIP16
+        ) {
+            Some(format!(
+                "in a part compressed with {}: gdrecon reads subsampled channels only with \
+                 NONE, RLE, ZIPS or ZIP",
+                header.compression
+            ))
+        } else {
+            None
+        };
+        if let Some(why) = why {
+            return Err(Error::Exr {
+                path: path.to_owned(),
+                message: format!(
+                    "OpenEXR feature not supported: channel '{}' is subsampled {} x {} {why}",
+                    c.name, c.sampling.0, c.sampling.1
+                ),
+            });
+        }
     }
     // Every chunk has an 8-byte entry in the offset tables, which the file itself holds: more
     // chunks than that is a damaged header, and the decoder would allocate the tables first
@@ -227,21 +247,22 @@ fn check_layout(mut reader: impl Read + Seek, path: &Path) -> Result<MetaData> {
             ),
         });
     }
-    chunks::check(&mut reader, &meta.headers, file_len).map_err(|message| Error::Exr {
-        path: path.to_owned(),
-        message,
-    })?;
+    let offsets =
+        chunks::check(&mut reader, &meta.headers, file_len).map_err(|message| Error::Exr {
+            path: path.to_owned(),
+            message,
+        })?;
     reader
         .seek(SeekFrom::Start(0))
         .map_err(|source| Error::Io {
             path: path.to_owned(),
             source,
         })?;
-    Ok(meta)
+    Ok((meta, offsets))
 }
 
 fn parse_bundle(mut reader: impl Read + Seek + Send, path: &Path) -> Result<RawBundle> {
-    let meta = check_layout(&mut reader, path)?;
+    let (meta, offsets) = check_layout(&mut reader, path)?;
     let err = |message: String| Error::Exr {
         path: path.to_owned(),
         message,
@@ -291,6 +312,13 @@ fn parse_bundle(mut reader: impl Read + Seek + Send, path: &Path) -> Result<RawB
                 ignored.push(prefixed);
                 continue;
             };
+            if channel.sampling != exr::math::Vec2(1, 1) {
+                return Err(err(format!(
+                    "channel '{full}' of layer {layer} is subsampled {} x {}: the frame's \
+                     layers must be stored at full resolution (other layers may be subsampled)",
+                    channel.sampling.0, channel.sampling.1
+                )));
+            }
             let entries = found.entry(layer).or_default();
             if let Some((other, _, _)) = entries.iter().find(|(_, c, _)| *c == component) {
                 return Err(err(format!(
@@ -332,7 +360,7 @@ fn parse_bundle(mut reader: impl Read + Seek + Send, path: &Path) -> Result<RawB
         sources.insert(layer, names);
         ignored.extend(extra);
     }
-    blocks::decode(reader, &targets, &mut images).map_err(|f| fault(f, path))?;
+    blocks::decode(reader, (&meta, &offsets), &targets, &mut images).map_err(|f| fault(f, path))?;
     Ok(RawBundle {
         path: path.to_owned(),
         size: (w, h),
@@ -459,7 +487,7 @@ fn read_rgb_or_layer(path: &Path, layer: &str) -> Result<Image> {
         source,
     })?;
     let mut reader = BufReader::new(file);
-    let meta = check_layout(&mut reader, path)?;
+    let (meta, offsets) = check_layout(&mut reader, path)?;
     let part = meta.headers.first().ok_or_else(|| Error::Exr {
         path: path.to_owned(),
         message: "the file has no image parts".into(),
@@ -491,7 +519,7 @@ fn read_rgb_or_layer(path: &Path, layer: &str) -> Result<Image> {
         targets[0][c] = Some(Target { image: 0, plane });
     }
     let mut images = [Image::try_zeros(3, part.layer_size.0, part.layer_size.1)?];
-    blocks::decode(reader, &targets, &mut images).map_err(|f| fault(f, path))?;
+    blocks::decode(reader, (&meta, &offsets), &targets, &mut images).map_err(|f| fault(f, path))?;
     let [image] = images;
     Ok(image)
 }
