@@ -181,6 +181,26 @@ fn check_layout(mut reader: impl Read + Seek, path: &Path) -> Result<(MetaData, 
             continue;
         };
         use exr::compression::Compression as C;
+        // OpenEXR requires the data window's origin and size to be multiples of the sampling
+        // (each line then holds `width / sx` samples): anything else is a damaged header.
+        let origin = header.own_attributes.layer_position;
+        let size = header.layer_size;
+        let uneven = |s: usize, at: i32, len: usize| match i32::try_from(s) {
+            Ok(si) if si > 0 => at.rem_euclid(si) != 0 || len % s != 0,
+            _ => true,
+        };
+        if let Some(bad) = header.channels.list.iter().find(|c| {
+            uneven(c.sampling.0, origin.0, size.0) || uneven(c.sampling.1, origin.1, size.1)
+        }) {
+            return Err(Error::Exr {
+                path: path.to_owned(),
+                message: format!(
+                    "damaged OpenEXR file: channel '{}' is sampled {} x {}, which does not \
+                     divide the data window ({} x {} at {:?})",
+                    bad.name, bad.sampling.0, bad.sampling.1, size.0, size.1, origin
+                ),
+            });
+        }
         let why = if header.blocks != exr::meta::BlockDescription::ScanLines || header.deep {
             Some("in a tiled or deep part (OpenEXR allows them in scan-line parts only)".to_owned())
         } else if !matches!(
