@@ -260,16 +260,12 @@ fn decompress(chunk: Chunk, meta: &MetaData) -> Result<UncompressedBlock, Fault>
         .headers
         .get(chunk.layer_index)
         .ok_or("chunk of an unknown part")?;
-    let subsampled = subsampled(header);
-    let CompressedBlock::ScanLine(block) = &chunk.compressed_block else {
-        if subsampled {
-            return Err("subsampled channels in a tiled or deep part".into());
-        }
-        return Ok(UncompressedBlock::decompress_chunk(chunk, meta, false)?);
+    // Subsampled channels are in scan-line parts only (others are refused by the header
+    // checks, `exr::check_layout`).
+    let block = match &chunk.compressed_block {
+        CompressedBlock::ScanLine(block) if subsampled(header) => block,
+        _ => return Ok(UncompressedBlock::decompress_chunk(chunk, meta, false)?),
     };
-    if !subsampled {
-        return Ok(UncompressedBlock::decompress_chunk(chunk, meta, false)?);
-    }
     let (width, height) = (header.layer_size.0, header.layer_size.1);
     let origin = header.own_attributes.layer_position;
     let first = block
