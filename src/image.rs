@@ -79,8 +79,27 @@ impl Image {
         f: impl Fn((usize, usize, usize)) -> f32 + Sync,
     ) -> Self {
         let mut img = Image::zeros(channels, width, height);
+        img.par_fill(f);
+        img
+    }
+
+    /// [`Image::par_from_fn`], or [`Error::OutOfMemory`] when the image cannot be allocated.
+    pub(crate) fn try_par_from_fn(
+        channels: usize,
+        width: usize,
+        height: usize,
+        f: impl Fn((usize, usize, usize)) -> f32 + Sync,
+    ) -> Result<Self> {
+        let mut img = Image::try_zeros(channels, width, height)?;
+        img.par_fill(f);
+        Ok(img)
+    }
+
+    /// Sets every value to `f((channel, x, y))`, rows in parallel.
+    fn par_fill(&mut self, f: impl Fn((usize, usize, usize)) -> f32 + Sync) {
+        let (width, height) = self.size();
         if width > 0 {
-            img.as_mut_slice()
+            self.as_mut_slice()
                 .par_chunks_mut(width)
                 .enumerate()
                 .for_each(|(r, row)| {
@@ -90,7 +109,6 @@ impl Image {
                     }
                 });
         }
-        img
     }
 
     /// Copies an interleaved-or-strided view of shape `(height, width, channels)` (the natural

@@ -11,15 +11,19 @@
 
 use rayon::prelude::*;
 
+use crate::error::Result;
 use crate::frame::Frame;
+use crate::image::try_vec;
 
 /// Relative noise level (standard deviation over value) under which a pixel is converged.
 pub const RELATIVE_NOISE: f32 = 1e-3;
 
 /// One flag per pixel (row-major), or `None` when the frame has no variance layer or no
-/// pixel is converged.
-pub(crate) fn converged_mask(frame: &Frame) -> Option<Vec<bool>> {
-    let var = frame.variance()?;
+/// pixel is converged; fails only with [`Error::OutOfMemory`](crate::Error::OutOfMemory).
+pub(crate) fn converged_mask(frame: &Frame) -> Result<Option<Vec<bool>>> {
+    let Some(var) = frame.variance() else {
+        return Ok(None);
+    };
     let (w, h) = frame.size();
     let n = w * h;
     let (colour, dx, dy) = (
@@ -31,23 +35,21 @@ pub(crate) fn converged_mask(frame: &Frame) -> Option<Vec<bool>> {
     let close = |g: f32, a: f32, b: f32| {
         (g - (b - a)).abs() <= RELATIVE_NOISE * (a.abs() + b.abs()) + f32::MIN_POSITIVE
     };
-    let mask: Vec<bool> = (0..n)
-        .into_par_iter()
-        .map(|p| {
-            let (x, y) = (p % w, p / w);
-            (0..3).all(|c| {
-                let o = c * n;
-                let i = colour[o + p];
-                let quiet = var[o + p] <= (RELATIVE_NOISE * i) * (RELATIVE_NOISE * i);
-                let right = x + 1 >= w || close(dx[o + p], i, colour[o + p + 1]);
-                let left = x == 0 || close(dx[o + p - 1], colour[o + p - 1], i);
-                let down = y + 1 >= h || close(dy[o + p], i, colour[o + p + w]);
-                let up = y == 0 || close(dy[o + p - w], colour[o + p - w], i);
-                quiet && right && left && down && up
-            })
-        })
-        .collect();
-    mask.iter().any(|&c| c).then_some(mask)
+    let mut mask = try_vec(n, false)?;
+    mask.par_iter_mut().enumerate().for_each(|(p, converged)| {
+        let (x, y) = (p % w, p / w);
+        *converged = (0..3).all(|c| {
+            let o = c * n;
+            let i = colour[o + p];
+            let quiet = var[o + p] <= (RELATIVE_NOISE * i) * (RELATIVE_NOISE * i);
+            let right = x + 1 >= w || close(dx[o + p], i, colour[o + p + 1]);
+            let left = x == 0 || close(dx[o + p - 1], colour[o + p - 1], i);
+            let down = y + 1 >= h || close(dy[o + p], i, colour[o + p + w]);
+            let up = y == 0 || close(dy[o + p - w], colour[o + p - w], i);
+            quiet && right && left && down && up
+        });
+    });
+    Ok(mask.iter().any(|&c| c).then_some(mask))
 }
 
 #[cfg(test)]
@@ -72,11 +74,15 @@ mod tests {
 
     #[test]
     fn noise_and_gradient_disagreement_decide() {
-        assert!(converged_mask(&frame(0.0, 0.0)).unwrap().iter().all(|&c| c));
+        assert!(converged_mask(&frame(0.0, 0.0))
+            .unwrap()
+            .unwrap()
+            .iter()
+            .all(|&c| c));
         // Noise above 0.1 % of the value anywhere: not converged there.
-        assert!(converged_mask(&frame(1e-4, 0.0)).is_none());
+        assert!(converged_mask(&frame(1e-4, 0.0)).unwrap().is_none());
         // One inconsistent gradient (pixel 7 -> 8): both its ends are not converged.
-        let m = converged_mask(&frame(0.0, 0.05)).unwrap();
+        let m = converged_mask(&frame(0.0, 0.05)).unwrap().unwrap();
         assert!(!m[7] && !m[8] && m[0] && m[19]);
     }
 
@@ -90,6 +96,6 @@ mod tests {
             .image(Layer::Dy, dy)
             .build(Policy::Replace)
             .unwrap();
-        assert!(converged_mask(&f).is_none());
+        assert!(converged_mask(&f).unwrap().is_none());
     }
 }

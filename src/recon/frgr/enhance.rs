@@ -19,7 +19,8 @@
 
 use rayon::prelude::*;
 
-use crate::image::Image;
+use crate::error::Result;
+use crate::image::{try_vec, Image};
 use crate::progress::Progress;
 
 /// Per-edge weights, shared by R, G, B: `m` (fidelity) and `lambda * a` (smoothness).
@@ -51,7 +52,7 @@ impl EnhanceWeights {
         albedo: Option<&Image>,
         normal: Option<&Image>,
         lambda: f32,
-    ) -> Self {
+    ) -> Result<Self> {
         let (w, h) = dx.size();
         let n = w * h;
         let fid = |g: &Image, i: usize| {
@@ -71,10 +72,10 @@ impl EnhanceWeights {
         let mut wts = EnhanceWeights {
             w,
             h,
-            mx: vec![0.0; n],
-            my: vec![0.0; n],
-            sx: vec![0.0; n],
-            sy: vec![0.0; n],
+            mx: try_vec(n, 0.0)?,
+            my: try_vec(n, 0.0)?,
+            sx: try_vec(n, 0.0)?,
+            sy: try_vec(n, 0.0)?,
         };
         wts.mx
             .par_chunks_mut(w)
@@ -94,7 +95,7 @@ impl EnhanceWeights {
                     }
                 }
             });
-        wts
+        Ok(wts)
     }
 }
 
@@ -254,16 +255,22 @@ struct Scratch {
 
 impl Sweeper {
     /// The affine edge terms of the weights and target gradients `gx`, `gy`.
-    pub fn new(gx: &[f32], gy: &[f32], wt: &EnhanceWeights) -> Self {
+    pub fn new(gx: &[f32], gy: &[f32], wt: &EnhanceWeights) -> Result<Self> {
         let n = wt.w * wt.h;
-        let a = |m: &[f32], s: &[f32]| -> Vec<f32> {
-            m.par_iter().zip(s).map(|(&m, &s)| 2.0 * (m + s)).collect()
+        let a = |m: &[f32], s: &[f32]| -> Result<Vec<f32>> {
+            let mut a = try_vec(m.len(), 0.0)?;
+            a.par_iter_mut()
+                .zip(m.par_iter().zip(s))
+                .for_each(|(a, (&m, &s))| *a = 2.0 * (m + s));
+            Ok(a)
         };
-        let b = |m: &[f32], t: &[f32]| -> Vec<f32> {
-            t.par_iter()
+        let b = |m: &[f32], t: &[f32]| -> Result<Vec<f32>> {
+            let mut b = try_vec(t.len(), 0.0)?;
+            b.par_iter_mut()
+                .zip(t.par_iter())
                 .enumerate()
-                .map(|(i, &t)| 2.0 * m[i % n] * t)
-                .collect()
+                .for_each(|(i, (b, &t))| *b = 2.0 * m[i % n] * t);
+            Ok(b)
         };
         let (w, h) = (wt.w, wt.h);
         let rows: Vec<f64> = (0..h)
@@ -281,15 +288,15 @@ impl Sweeper {
                 acc
             })
             .collect();
-        Sweeper {
+        Ok(Sweeper {
             w,
             h,
-            ax: a(&wt.mx, &wt.sx),
-            ay: a(&wt.my, &wt.sy),
-            bx: b(&wt.mx, gx),
-            by: b(&wt.my, gy),
+            ax: a(&wt.mx, &wt.sx)?,
+            ay: a(&wt.my, &wt.sy)?,
+            bx: b(&wt.mx, gx)?,
+            by: b(&wt.my, gy)?,
             constant: rows.iter().sum(),
-        }
+        })
     }
 
     /// Channel `c`'s energy terms of row `y` (`mid`) along its horizontal edges.
@@ -332,25 +339,21 @@ impl Sweeper {
     /// f32 rounding of a large energy can fake a rise, and a revert, when the step is small).
     /// The summation order is fixed, so the value does not depend on the threads; a pass that
     /// computes it on the way ([`Sweeper::run`]) gets the same bits.
-    pub fn loss(&self, img: &[f32]) -> f64 {
+    pub fn loss(&self, img: &[f32]) -> Result<f64> {
         let (w, h) = (self.w, self.h);
         let n = w * h;
-        let rows: Vec<RowEnergy> = (0..h)
-            .into_par_iter()
-            .map(|y| {
-                let mut r = [0.0; 6];
-                for c in 0..3 {
-                    let o = c * n + y * w;
-                    let mid = &img[o..o + w];
-                    r[2 * c] = self.across_energy(c, y, mid);
-                    if y + 1 < h {
-                        r[2 * c + 1] = self.down_energy(c, y, mid, &img[o + w..o + 2 * w]);
-                    }
+        let mut rows: Vec<RowEnergy> = try_vec(h, [0.0; 6])?;
+        rows.par_iter_mut().enumerate().for_each(|(y, r)| {
+            for c in 0..3 {
+                let o = c * n + y * w;
+                let mid = &img[o..o + w];
+                r[2 * c] = self.across_energy(c, y, mid);
+                if y + 1 < h {
+                    r[2 * c + 1] = self.down_energy(c, y, mid, &img[o + w..o + 2 * w]);
                 }
-                r
-            })
-            .collect();
-        self.total(&rows)
+            }
+        });
+        Ok(self.total(&rows))
     }
 
     /// Runs `steps` descent steps from `src` into `dst`; with `energy`, returns the energy of
@@ -364,7 +367,7 @@ impl Sweeper {
         step: f32,
         steps: usize,
         energy: bool,
-    ) -> Option<f64> {
+    ) -> Result<Option<f64>> {
         let (w, h) = (self.w, self.h);
         let n = w * h;
         assert!(steps >= 1 && src.len() == 3 * n && dst.len() == 3 * n);
@@ -374,7 +377,7 @@ impl Sweeper {
             .max(1);
         let band = h.div_ceil(bands);
         let mut rows: Vec<RowEnergy> = if energy {
-            vec![[0.0; 6]; h]
+            try_vec(h, [0.0; 6])?
         } else {
             Vec::new()
         };
@@ -388,15 +391,15 @@ impl Sweeper {
                 .zip(d2.par_chunks_mut(band * w))
                 .zip(parts.into_par_iter())
                 .enumerate()
-                .for_each(|(b, (((o0, o1), o2), e))| {
+                .try_for_each(|(b, (((o0, o1), o2), e))| {
                     let y0 = b * band;
                     let y1 = (y0 + band).min(h);
                     let e = energy.then_some(e);
-                    self.band(src, [o0, o1, o2], e, step, steps, y0, y1);
-                });
+                    self.band(src, [o0, o1, o2], e, step, steps, y0, y1)
+                })?;
         }
         if !energy {
-            return None;
+            return Ok(None);
         }
         // The vertical edges from each band's last row into the next band's first.
         for y in (band - 1..h - 1).step_by(band) {
@@ -406,7 +409,7 @@ impl Sweeper {
                 rows[y][2 * c + 1] = self.down_energy(c, y, mid, down);
             }
         }
-        Some(self.total(&rows))
+        Ok(Some(self.total(&rows)))
     }
 
     /// One band: output rows `y0..y1`, from input rows `y0 - steps..y1 + steps`; with
@@ -422,7 +425,7 @@ impl Sweeper {
         steps: usize,
         y0: usize,
         y1: usize,
-    ) {
+    ) -> Result<()> {
         let (w, h) = (self.w, self.h);
         let n = w * h;
         let lo = y0.saturating_sub(steps);
@@ -432,8 +435,10 @@ impl Sweeper {
         let first = |k: usize| if lo == 0 { 0 } else { lo + k };
         let end = |k: usize| if hi == h { h } else { hi - k };
         let mut s = Scratch {
-            ring: vec![0.0; steps.saturating_sub(1) * 9 * w],
-            above: vec![vec![0.0; w]; steps * 3],
+            ring: try_vec(steps.saturating_sub(1) * 9 * w, 0.0)?,
+            above: (0..steps * 3)
+                .map(|_| try_vec(w, 0.0))
+                .collect::<Result<_>>()?,
             below: vec![0.0; w],
             across: vec![0.0; w + 1],
         };
@@ -493,6 +498,7 @@ impl Sweeper {
                 }
             }
         }
+        Ok(())
     }
 
     /// Fluxes of the vertical edges `r -> r + 1` (zero when either row is missing).
@@ -605,11 +611,12 @@ pub(crate) fn enhance_reference(
     wt: &EnhanceWeights,
     iterations: u32,
 ) -> (Image, EnhanceOutcome) {
-    enhance_or_stop(guide, dx, dy, wt, iterations, &Progress::none())
+    enhance_or_stop(guide, dx, dy, wt, iterations, &Progress::none()).expect("allocated")
 }
 
 /// The release's literal schedule; returns the enhanced image. Once `stop` is cancelled it
-/// ends early and returns the guide (the caller checks `stop`).
+/// ends early and returns the guide (the caller checks `stop`). Fails only with
+/// [`Error::OutOfMemory`](crate::Error::OutOfMemory).
 pub(crate) fn enhance_or_stop(
     guide: &Image,
     dx: &Image,
@@ -617,14 +624,17 @@ pub(crate) fn enhance_or_stop(
     wt: &EnhanceWeights,
     iterations: u32,
     stop: &Progress,
-) -> (Image, EnhanceOutcome) {
+) -> Result<(Image, EnhanceOutcome)> {
     let (gx, gy) = (dx.as_slice(), dy.as_slice());
     let start = guide.as_slice();
-    let mut cur = start.to_vec();
-    let mut next = vec![0.0f32; cur.len()];
+    // `out` holds the guide until the end (what a cancel returns).
+    let mut out = guide.try_clone()?;
+    let mut cur = try_vec(start.len(), 0.0f32)?;
+    cur.copy_from_slice(start);
+    let mut next = try_vec(start.len(), 0.0f32)?;
     let mut step = 1e-4f32;
-    let sweeper = Sweeper::new(gx, gy, wt);
-    let loss_start = sweeper.loss(start);
+    let sweeper = Sweeper::new(gx, gy, wt)?;
+    let loss_start = sweeper.loss(start)?;
     let mut best = loss_start;
     // The energy of `cur`, when known.
     let mut cur_loss = Some(loss_start);
@@ -644,12 +654,12 @@ pub(crate) fn enhance_or_stop(
             }
             let steps = todo / (passes - p);
             let energy = p + 1 == passes && last == check;
-            cur_loss = sweeper.run(&cur, &mut next, step, steps, energy);
+            cur_loss = sweeper.run(&cur, &mut next, step, steps, energy)?;
             std::mem::swap(&mut cur, &mut next);
             todo -= steps;
         }
         if stop.stopped() {
-            return (guide.clone(), EnhanceOutcome::default());
+            return Ok((out, EnhanceOutcome::default()));
         }
         it = last + 1;
         if let Some(l) = cur_loss {
@@ -667,7 +677,10 @@ pub(crate) fn enhance_or_stop(
             }
         }
     }
-    let mut loss_end = cur_loss.unwrap_or_else(|| sweeper.loss(&cur));
+    let mut loss_end = match cur_loss {
+        Some(l) => l,
+        None => sweeper.loss(&cur)?,
+    };
     if loss_end > best || !loss_end.is_finite() {
         // The steps after the last check rose: the step was too large for them (seen on
         // garbage frames, where they overflowed). The release returns the diverged image; we
@@ -676,16 +689,15 @@ pub(crate) fn enhance_or_stop(
         cur.copy_from_slice(start);
         loss_end = loss_start;
     }
-    let mut out = guide.clone();
     out.as_mut_slice().copy_from_slice(&cur);
-    (
+    Ok((
         out,
         EnhanceOutcome {
             reverts,
             loss_start,
             loss_end,
         },
-    )
+    ))
 }
 
 #[cfg(test)]
@@ -710,10 +722,10 @@ mod tests {
             h,
             |(c, x, _)| if x > 2 { 0.5 } else { 0.1 * c as f32 },
         );
-        let wt = EnhanceWeights::new(&dx, &dy, Some(&alb), None, 0.7);
+        let wt = EnhanceWeights::new(&dx, &dy, Some(&alb), None, 0.7).unwrap();
         let step = 1e-3f32;
         let mut next = vec![0.0; img.as_slice().len()];
-        let terms = Sweeper::new(dx.as_slice(), dy.as_slice(), &wt);
+        let terms = Sweeper::new(dx.as_slice(), dy.as_slice(), &wt).unwrap();
         descend(img.as_slice(), &mut next, &terms, step);
         for k in [0usize, 7, 31, 58, 89] {
             let g = (img.as_slice()[k] - next[k]) / step;
@@ -722,7 +734,8 @@ mod tests {
             plus[k] += e;
             let mut minus = img.as_slice().to_vec();
             minus[k] -= e;
-            let fd = (terms.loss(&plus) - terms.loss(&minus)) / (2.0 * f64::from(e));
+            let fd =
+                (terms.loss(&plus).unwrap() - terms.loss(&minus).unwrap()) / (2.0 * f64::from(e));
             assert!(
                 (f64::from(g) - fd).abs() < 1e-2 * fd.abs().max(1.0),
                 "k {k}: {g} vs {fd}"
@@ -743,14 +756,14 @@ mod tests {
         let mut cur = start.to_vec();
         let mut next = vec![0.0f32; cur.len()];
         let mut step = 1e-4f32;
-        let terms = Sweeper::new(gx, gy, wt);
-        let loss_start = terms.loss(start);
+        let terms = Sweeper::new(gx, gy, wt).unwrap();
+        let loss_start = terms.loss(start).unwrap();
         let mut best = loss_start;
         for it in 0..iterations {
             descend(&cur, &mut next, &terms, step);
             std::mem::swap(&mut cur, &mut next);
             if it < 20 || it % 50 == 0 {
-                let l = terms.loss(&cur);
+                let l = terms.loss(&cur).unwrap();
                 if l > best || !l.is_finite() {
                     step *= 0.5;
                     cur.copy_from_slice(start);
@@ -760,7 +773,7 @@ mod tests {
                 }
             }
         }
-        let l = terms.loss(&cur);
+        let l = terms.loss(&cur).unwrap();
         if l > best || !l.is_finite() {
             cur.copy_from_slice(start);
         }
@@ -779,7 +792,7 @@ mod tests {
     /// (albedo on, lambda 0.7).
     fn problem(w: usize, h: usize) -> (Image, Image, Image, EnhanceWeights) {
         let (dx, dy) = textured(w, h, 1).forward_differences();
-        let wt = EnhanceWeights::new(&dx, &dy, Some(&textured(w, h, 3)), None, 0.7);
+        let wt = EnhanceWeights::new(&dx, &dy, Some(&textured(w, h, 3)), None, 0.7).unwrap();
         (textured(w, h, 2), dx, dy, wt)
     }
 
@@ -828,12 +841,14 @@ mod tests {
             (9, 1, 1, 2),
         ] {
             let (noisy, dx, dy, wt) = problem(w, h);
-            let sweeper = Sweeper::new(dx.as_slice(), dy.as_slice(), &wt);
+            let sweeper = Sweeper::new(dx.as_slice(), dy.as_slice(), &wt).unwrap();
             let mut out = vec![0.0; 3 * w * h];
             let energy = with_threads(threads, || {
-                sweeper.run(noisy.as_slice(), &mut out, 1e-3, steps, true)
+                sweeper
+                    .run(noisy.as_slice(), &mut out, 1e-3, steps, true)
+                    .unwrap()
             });
-            let want = sweeper.loss(&out);
+            let want = sweeper.loss(&out).unwrap();
             assert_eq!(
                 energy.map(f64::to_bits),
                 Some(want.to_bits()),
@@ -878,7 +893,7 @@ mod tests {
     fn valid_gradients_of_the_start_are_a_fixed_point() {
         let img = ramp(8, 6);
         let (dx, dy) = img.forward_differences();
-        let wt = EnhanceWeights::new(&dx, &dy, None, None, 0.0);
+        let wt = EnhanceWeights::new(&dx, &dy, None, None, 0.0).unwrap();
         let (out, outcome) = enhance_reference(&img, &dx, &dy, &wt, 100);
         // 0 up to the f32 rounding of the edges' `a` and `b` (relative 6e-8 of the parts,
         // here sum m t^2 = 60).
@@ -900,7 +915,7 @@ mod tests {
             0.5 + 0.1 * (((x * 7 + y * 13 + c * 5) % 11) as f32 / 11.0 - 0.5)
         });
         let zero = Image::zeros(3, w, h);
-        let wt = EnhanceWeights::new(&zero, &zero, None, None, 0.0);
+        let wt = EnhanceWeights::new(&zero, &zero, None, None, 0.0).unwrap();
         let (_, outcome) = enhance_reference(&noisy, &zero, &zero, &wt, 1000);
         assert!(outcome.reverts >= 1 && outcome.reverts < 10, "{outcome:?}");
         assert!(outcome.loss_end < 0.1 * outcome.loss_start, "{outcome:?}");
@@ -913,7 +928,7 @@ mod tests {
         let noisy = Image::from_fn(3, 16, 12, |(c, x, y)| {
             clean.at(c, x, y) + if (x + y) % 2 == 0 { 0.05 } else { -0.05 }
         });
-        let wt = EnhanceWeights::new(&dx, &dy, None, None, 0.0);
+        let wt = EnhanceWeights::new(&dx, &dy, None, None, 0.0).unwrap();
         let (_, outcome) = enhance_reference(&noisy, &dx, &dy, &wt, 300);
         assert!(outcome.loss_end < 0.5 * outcome.loss_start, "{outcome:?}");
     }

@@ -21,7 +21,8 @@ use std::borrow::Cow;
 use rayon::prelude::*;
 
 use super::util::reflect;
-use crate::image::Image;
+use crate::error::Result;
+use crate::image::{try_vec, Image};
 use crate::progress::Progress;
 
 /// Fit error beyond which a block is point-sampled.
@@ -48,35 +49,36 @@ pub(crate) struct Glu {
 }
 
 /// Pads to even width and height by reflect-101; even sizes are borrowed as they are (no copy).
-pub(crate) fn pad_even(img: &Image) -> Cow<'_, Image> {
+pub(crate) fn pad_even(img: &Image) -> Result<Cow<'_, Image>> {
     let (w, h) = img.size();
     let (pw, ph) = (w + w % 2, h + h % 2);
     if (pw, ph) == (w, h) {
-        return Cow::Borrowed(img);
+        return Ok(Cow::Borrowed(img));
     }
-    Cow::Owned(Image::par_from_fn(img.channels(), pw, ph, |(c, x, y)| {
+    Image::try_par_from_fn(img.channels(), pw, ph, |(c, x, y)| {
         img.at(c, reflect(x as isize, w), reflect(y as isize, h))
-    }))
+    })
+    .map(Cow::Owned)
 }
 
 /// Crops to `w` x `h` (the top-left corner); an image of that size is returned as it is.
-pub(crate) fn crop(img: Image, w: usize, h: usize) -> Image {
+pub(crate) fn crop(img: Image, w: usize, h: usize) -> Result<Image> {
     if img.size() == (w, h) {
-        return img;
+        return Ok(img);
     }
-    Image::par_from_fn(img.channels(), w, h, |(c, x, y)| img.at(c, x, y))
+    Image::try_par_from_fn(img.channels(), w, h, |(c, x, y)| img.at(c, x, y))
 }
 
 impl Glu {
     /// Fits the 2x level structure to the guide `j` (even size).
     #[cfg(test)]
     pub fn new(j: &Image) -> Self {
-        Self::new_or_stop(j, &Progress::none())
+        Self::new_or_stop(j, &Progress::none()).expect("allocated")
     }
 
     /// [`Glu::new`], returning an unusable fit early once `stop` is cancelled (the caller
     /// checks `stop`).
-    pub fn new_or_stop(j: &Image, stop: &Progress) -> Self {
+    pub fn new_or_stop(j: &Image, stop: &Progress) -> Result<Self> {
         let (w, h) = j.size();
         assert!(
             w % 2 == 0 && h % 2 == 0,
@@ -86,15 +88,15 @@ impl Glu {
         let mut glu = Glu {
             fine: (w, h),
             coarse: (cw, ch),
-            samples: vec![Sample::Box; cw * ch],
+            samples: try_vec(cw * ch, Sample::Box)?,
             fit: Vec::new(),
         };
-        let coarse = glu.downsample(j, false);
-        let errors = glu.refit(j, &coarse, None);
+        let coarse = glu.downsample(j, false)?;
+        let errors = glu.refit(j, &coarse, None)?;
         if stop.stopped() {
-            return glu;
+            return Ok(glu);
         }
-        let mut changed = vec![false; cw * ch];
+        let mut changed = try_vec(cw * ch, false)?;
         for by in 0..ch {
             for bx in 0..cw {
                 let mut worst = (ERROR_THRESHOLD, None);
@@ -115,10 +117,10 @@ impl Glu {
         if changed.contains(&true) {
             // Only the fine pixels with a point-sampled block among their 9 candidates can fit
             // differently: the box blocks' values did not change.
-            let coarse = glu.downsample(j, false);
-            glu.refit(j, &coarse, Some(&changed));
+            let coarse = glu.downsample(j, false)?;
+            glu.refit(j, &coarse, Some(&changed))?;
         }
-        glu
+        Ok(glu)
     }
 
     /// The 9 coarse candidates of fine pixel `(x, y)`: the 3 x 3 neighbours of its parent
@@ -134,20 +136,26 @@ impl Glu {
 
     /// Fits the fine pixels to the coarse guide (all of them, or those with a candidate in
     /// `only`, the others keeping their fit); returns the fit errors (0 where not refitted).
-    fn refit(&mut self, j: &Image, coarse: &Image, only: Option<&[bool]>) -> Vec<f32> {
+    fn refit(&mut self, j: &Image, coarse: &Image, only: Option<&[bool]>) -> Result<Vec<f32>> {
         let (w, h) = self.fine;
         let (cw, ch) = self.coarse;
         let nc = j.channels();
         let (fs, cs) = (j.as_slice(), coarse.as_slice());
         let (n, cn) = (w * h, cw * ch);
-        let old = std::mem::take(&mut self.fit);
-        let results: Vec<((u32, u32, f32), f32)> = (0..n)
-            .into_par_iter()
-            .map(|p| {
-                let cand = self.candidates(p % w, p / w);
+        let mut errors = try_vec(n, 0.0f32)?;
+        let mut fit = std::mem::take(&mut self.fit);
+        if fit.len() != n {
+            fit = try_vec(n, (0, 0, 0.0))?;
+        }
+        let glu = &*self;
+        fit.par_iter_mut()
+            .zip(errors.par_iter_mut())
+            .enumerate()
+            .for_each(|(p, (fit, error))| {
+                let cand = glu.candidates(p % w, p / w);
                 if let Some(only) = only {
                     if !cand.iter().any(|&q| only[q]) {
-                        return (old[p], 0.0);
+                        return;
                     }
                 }
                 // With u_k = t - J[cand k], every pair's fit comes from the Gram matrix of the
@@ -184,18 +192,17 @@ impl Glu {
                         }
                     }
                 }
-                (best.0, best.1.sqrt() as f32)
-            })
-            .collect();
-        self.fit = results.iter().map(|r| r.0).collect();
-        results.iter().map(|r| r.1).collect()
+                (*fit, *error) = (best.0, best.1.sqrt() as f32);
+            });
+        self.fit = fit;
+        Ok(errors)
     }
 
     /// Downsamples a buffer (any channel count, fine size): block mean or chosen pixel; a
     /// variance (`variance = true`) of a box block is the variance of the mean, sum / 16.
-    pub fn downsample(&self, img: &Image, variance: bool) -> Image {
+    pub fn downsample(&self, img: &Image, variance: bool) -> Result<Image> {
         let (cw, ch) = self.coarse;
-        Image::par_from_fn(img.channels(), cw, ch, |(c, x, y)| {
+        Image::try_par_from_fn(img.channels(), cw, ch, |(c, x, y)| {
             match self.samples[y * cw + x] {
                 Sample::Box => {
                     let s = img.at(c, 2 * x, 2 * y)
@@ -224,7 +231,7 @@ impl Glu {
 
     /// Downsamples gradients: each coarse difference is the mean, over source and target
     /// samples, of the fine differences summed along a path (horizontal, then vertical).
-    pub fn downsample_gradients(&self, dx: &Image, dy: &Image) -> (Image, Image) {
+    pub fn downsample_gradients(&self, dx: &Image, dy: &Image) -> Result<(Image, Image)> {
         let (cw, ch) = self.coarse;
         let path = |c: usize, (sx, sy): (usize, usize), (tx, ty): (usize, usize)| -> f32 {
             let mut s = 0.0;
@@ -250,42 +257,48 @@ impl Glu {
             }
             s / (la * lb) as f32
         };
-        let cdx = Image::par_from_fn(3, cw, ch, |(c, x, y)| {
+        let cdx = Image::try_par_from_fn(3, cw, ch, |(c, x, y)| {
             if x + 1 < cw {
                 edge(c, (x, y), (x + 1, y))
             } else {
                 0.0
             }
-        });
-        let cdy = Image::par_from_fn(3, cw, ch, |(c, x, y)| {
+        })?;
+        let cdy = Image::try_par_from_fn(3, cw, ch, |(c, x, y)| {
             if y + 1 < ch {
                 edge(c, (x, y), (x, y + 1))
             } else {
                 0.0
             }
-        });
-        (cdx, cdy)
+        })?;
+        Ok((cdx, cdy))
     }
 
     /// Upsamples a coarse image (and optionally its variance) with the fitted weights.
-    pub fn upsample(&self, img: &Image, variance: Option<&Image>) -> (Image, Option<Image>) {
+    pub fn upsample(
+        &self,
+        img: &Image,
+        variance: Option<&Image>,
+    ) -> Result<(Image, Option<Image>)> {
         let (w, h) = self.fine;
         let (cw, ch) = self.coarse;
         let cn = cw * ch;
         let s = img.as_slice();
-        let up = Image::par_from_fn(img.channels(), w, h, |(c, x, y)| {
+        let up = Image::try_par_from_fn(img.channels(), w, h, |(c, x, y)| {
             let (a, b, wt) = self.fit[y * w + x];
             wt * s[c * cn + a as usize] + (1.0 - wt) * s[c * cn + b as usize]
-        });
-        let var = variance.map(|v| {
-            let vs = v.as_slice();
-            Image::par_from_fn(v.channels(), w, h, |(c, x, y)| {
-                let (a, b, wt) = self.fit[y * w + x];
-                wt * wt * vs[c * cn + a as usize]
-                    + (1.0 - wt) * (1.0 - wt) * vs[c * cn + b as usize]
+        })?;
+        let var = variance
+            .map(|v| {
+                let vs = v.as_slice();
+                Image::try_par_from_fn(v.channels(), w, h, |(c, x, y)| {
+                    let (a, b, wt) = self.fit[y * w + x];
+                    wt * wt * vs[c * cn + a as usize]
+                        + (1.0 - wt) * (1.0 - wt) * vs[c * cn + b as usize]
+                })
             })
-        });
-        (up, var)
+            .transpose()?;
+        Ok((up, var))
     }
 }
 
@@ -303,8 +316,8 @@ mod tests {
         });
         let glu = Glu::new(&j);
         assert!(glu.samples.iter().all(|s| *s == Sample::Box));
-        let coarse = glu.downsample(&j, false);
-        let (up, _) = glu.upsample(&coarse, None);
+        let coarse = glu.downsample(&j, false).unwrap();
+        let (up, _) = glu.upsample(&coarse, None).unwrap();
         let d = up.max_abs_diff(&j);
         assert!(d < 1e-5, "{d}");
     }
@@ -318,11 +331,11 @@ mod tests {
         let mut guide = img.clone();
         // Make a few blocks point-sampled: huge values in single pixels.
         guide.planes_mut()[[0, 3, 4]] += 50.0;
-        let glu = Glu::new(&pad_even(&guide));
+        let glu = Glu::new(&pad_even(&guide).unwrap());
         assert!(glu.samples.iter().any(|s| matches!(s, Sample::Point(..))));
         let (dx, dy) = img.forward_differences();
-        let coarse = glu.downsample(&img, false);
-        let (cdx, cdy) = glu.downsample_gradients(&dx, &dy);
+        let coarse = glu.downsample(&img, false).unwrap();
+        let (cdx, cdy) = glu.downsample_gradients(&dx, &dy).unwrap();
         let (edx, edy) = coarse.forward_differences();
         for (a, b) in [(&cdx, &edx), (&cdy, &edy)] {
             let d = a
@@ -345,7 +358,7 @@ mod tests {
             (k as f32 / 1000.0) * if c < 3 { 4.0 } else { 0.3 }
         });
         let glu = Glu::new(&j);
-        let coarse = glu.downsample(&j, false);
+        let coarse = glu.downsample(&j, false).unwrap();
         let (cw, ch) = glu.coarse;
         let at = |q: usize, c: usize| f64::from(coarse.as_slice()[c * cw * ch + q]);
         let err = |p: usize, a: usize, b: usize, wt: f64| -> f64 {
@@ -395,7 +408,7 @@ mod tests {
         let j = Image::from_fn(3, 4, 4, |(c, x, y)| (x + 2 * y + c) as f32);
         let glu = Glu::new(&j);
         let v = Image::from_fn(3, 2, 2, |_| 1.0);
-        let (_, var) = glu.upsample(&v, Some(&v));
+        let (_, var) = glu.upsample(&v, Some(&v)).unwrap();
         for (p, &(_, _, wt)) in glu.fit.iter().enumerate() {
             let expect = wt * wt + (1.0 - wt) * (1.0 - wt);
             assert!((var.as_ref().unwrap().as_slice()[p] - expect).abs() < 1e-6);
@@ -405,9 +418,9 @@ mod tests {
     #[test]
     fn odd_sizes_pad_and_crop_back() {
         let img = Image::from_fn(3, 7, 5, |(c, x, y)| (x + 10 * y + c) as f32);
-        let p = pad_even(&img);
+        let p = pad_even(&img).unwrap();
         assert_eq!(p.size(), (8, 6));
         assert_eq!(p.at(0, 7, 0), img.at(0, 5, 0));
-        assert_eq!(crop(p.into_owned(), 7, 5), img);
+        assert_eq!(crop(p.into_owned(), 7, 5).unwrap(), img);
     }
 }

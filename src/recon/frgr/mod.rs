@@ -213,7 +213,8 @@ const LIMIT: f32 = 1e6;
 /// What depends on the size alone is made here: the level pyramid's sizes, the gradient
 /// buffers that outlier removal writes, and with the L1 guide its planned solve (DCT plans,
 /// IRLS buffers) and output. The stages' intermediate images (RDFC, GLU, enhancement, QP)
-/// are still allocated per execution.
+/// are allocated per execution, fallibly: a failure is `OutOfMemory`, and the plan stays
+/// usable.
 pub(crate) struct Frgr {
     cfg: FrgrConfig,
     /// Sizes of the levels that run, finest first.
@@ -271,9 +272,9 @@ fn level_sizes(width: usize, height: usize, levels: usize) -> Vec<(usize, usize)
 
 /// Per-pixel variance estimate when the frame has none: the sample variance of the 3 x 3
 /// neighbourhood's colour (an overestimate at edges, which makes the filter more cautious).
-fn estimate_variance(colour: &Image) -> Image {
+fn estimate_variance(colour: &Image) -> Result<Image> {
     let (w, h) = colour.size();
-    Image::par_from_fn(3, w, h, |(c, x, y)| {
+    Image::try_par_from_fn(3, w, h, |(c, x, y)| {
         let (mut s, mut s2) = (0.0f32, 0.0f32);
         for dy in -1..=1 {
             for dx in -1..=1 {
@@ -291,13 +292,21 @@ fn estimate_variance(colour: &Image) -> Image {
 }
 
 /// `img` times `s`; borrowed as it is when `s` is 1.
-fn scaled(img: &Image, s: f32) -> Cow<'_, Image> {
+fn scaled(img: &Image, s: f32) -> Result<Cow<'_, Image>> {
     if s == 1.0 {
-        return Cow::Borrowed(img);
+        return Ok(Cow::Borrowed(img));
     }
-    let mut out = img.clone();
+    let mut out = img.try_clone()?;
     out.as_mut_slice().iter_mut().for_each(|v| *v *= s);
-    Cow::Owned(out)
+    Ok(Cow::Owned(out))
+}
+
+/// `dst = src * s`, in place of a copy.
+fn copy_scaled(dst: &mut Image, src: &Image, s: f32) {
+    dst.as_mut_slice().copy_from_slice(src.as_slice());
+    if s != 1.0 {
+        dst.as_mut_slice().iter_mut().for_each(|v| *v *= s);
+    }
 }
 
 /// The buffers of one resolution level.
@@ -319,9 +328,9 @@ const MIN_LEVEL_SIDE: usize = 16;
 /// Pads gradients to even sizes: reflect-101 like every other buffer, except that the
 /// difference across the new border is the negated mirrored one (a mirrored gradient changes
 /// sign) and the last column / row stays 0.
-fn pad_gradients<'a>(dx: &'a Image, dy: &'a Image) -> (Cow<'a, Image>, Cow<'a, Image>) {
+fn pad_gradients<'a>(dx: &'a Image, dy: &'a Image) -> Result<(Cow<'a, Image>, Cow<'a, Image>)> {
     let (w, h) = dx.size();
-    let (mut px, mut py) = (glu::pad_even(dx), glu::pad_even(dy));
+    let (mut px, mut py) = (glu::pad_even(dx)?, glu::pad_even(dy)?);
     if w % 2 == 1 {
         let px = px.to_mut();
         for c in 0..3 {
@@ -342,7 +351,7 @@ fn pad_gradients<'a>(dx: &'a Image, dy: &'a Image) -> (Cow<'a, Image>, Cow<'a, I
             }
         }
     }
-    (px, py)
+    Ok((px, py))
 }
 
 impl Frgr {
@@ -364,10 +373,10 @@ impl Frgr {
         );
         let up = if depth + 1 < self.levels.len() {
             let pad = glu::pad_even;
-            let guide = pad(&inp.guide);
+            let guide = pad(&inp.guide)?;
             let (albedo, normal) = (
-                inp.albedo.as_deref().map(pad),
-                inp.normal.as_deref().map(pad),
+                inp.albedo.as_deref().map(pad).transpose()?,
+                inp.normal.as_deref().map(pad).transpose()?,
             );
             // GLU's guide: [guide RGB, 0.1 albedo, 0.1 normal], written in place.
             let features: Vec<&Image> = [&albedo, &normal]
@@ -376,7 +385,7 @@ impl Frgr {
                 .map(|f| &**f)
                 .collect();
             let (pw, ph) = guide.size();
-            let mut j = Image::zeros(3 + 3 * features.len(), pw, ph);
+            let mut j = Image::try_zeros(3 + 3 * features.len(), pw, ph)?;
             let (head, tail) = j.as_mut_slice().split_at_mut(guide.as_slice().len());
             head.copy_from_slice(guide.as_slice());
             for (dst, f) in tail.chunks_mut(3 * pw * ph).zip(&features) {
@@ -386,24 +395,25 @@ impl Frgr {
             }
             let fit = report.time(&format!("glu (level {depth})"), || {
                 glu::Glu::new_or_stop(&j, progress)
-            });
+            })?;
             progress.check()?;
-            let (pdx, pdy) = pad_gradients(&inp.dx, &inp.dy);
-            let (cdx, cdy) = fit.downsample_gradients(&pdx, &pdy);
+            let (pdx, pdy) = pad_gradients(&inp.dx, &inp.dy)?;
+            let (cdx, cdy) = fit.downsample_gradients(&pdx, &pdy)?;
+            let down = |img: &Image| fit.downsample(img, false).map(Cow::Owned);
             let coarse = LevelInputs {
-                colour: Cow::Owned(fit.downsample(&pad(&inp.colour), false)),
-                var: fit.downsample(&pad(&inp.var), true),
+                colour: down(&*pad(&inp.colour)?)?,
+                var: fit.downsample(&*pad(&inp.var)?, true)?,
                 dx: Cow::Owned(cdx),
                 dy: Cow::Owned(cdy),
-                albedo: albedo.map(|a| Cow::Owned(fit.downsample(&a, false))),
-                normal: normal.map(|f| Cow::Owned(fit.downsample(&f, false))),
-                guide: Cow::Owned(fit.downsample(&guide, false)),
+                albedo: albedo.map(|a| down(&a)).transpose()?,
+                normal: normal.map(|f| down(&f)).transpose()?,
+                guide: down(&guide)?,
                 converged: None,
             };
             let (r, v) = self.run_level(&coarse, spp, depth + 1, report, progress)?;
-            let (u, uv) = fit.upsample(&r, Some(&v));
+            let (u, uv) = fit.upsample(&r, Some(&v))?;
             let uv = uv.expect("variance requested");
-            Some((glu::crop(u, w, h), glu::crop(uv, w, h)))
+            Some((glu::crop(u, w, h)?, glu::crop(uv, w, h)?))
         } else {
             None
         };
@@ -421,7 +431,7 @@ impl Frgr {
                     inp.albedo.as_deref(),
                     inp.normal.as_deref(),
                     lambda,
-                );
+                )?;
                 enhance::enhance_or_stop(
                     &inp.guide,
                     &inp.dx,
@@ -430,7 +440,7 @@ impl Frgr {
                     self.cfg.enhance_iterations,
                     progress,
                 )
-            });
+            })?;
             progress.check()?;
             report.note(format!(
                 "level {depth} ({w} x {h}): enhancement {} iterations, {} reverts, energy {:.4e} -> {:.4e}",
@@ -466,7 +476,7 @@ impl Frgr {
         }
         let (out, var, skipped) = report.time(&format!("qp filter (level {depth})"), || {
             qp::filter_or_stop(&level, progress)
-        });
+        })?;
         progress.check()?;
         if skipped.empty > 0 {
             report.skip(format!(
@@ -521,32 +531,33 @@ impl Reconstructor for Frgr {
                 "radiance up to {peak:e}: filtered at scale {scale:e}"
             ));
         }
-        let colour = scaled(frame.color(), scale);
+        let colour = scaled(frame.color(), scale)?;
         let colour = &*colour;
         // The plan's gradient buffers: the frame's gradients, then outlier removal in place.
         let (dx, dy) = (&mut self.dx, &mut self.dy);
-        dx.as_mut_slice()
-            .copy_from_slice(scaled(frame.dx(), scale).as_slice());
-        dy.as_mut_slice()
-            .copy_from_slice(scaled(frame.dy(), scale).as_slice());
-        let var_in = frame.variance().map(|v| scaled(v, scale * scale));
+        copy_scaled(dx, frame.dx(), scale);
+        copy_scaled(dy, frame.dy(), scale);
+        let var_in = frame
+            .variance()
+            .map(|v| scaled(v, scale * scale))
+            .transpose()?;
         let var = match var_in.as_ref() {
             // Renderers estimate the variance of the mean from few passes (ours: 4), so the
             // layer is itself very noisy; a 5 x 5 box average makes the RDFC distances and
             // SURE usable (on the bundled sample: guide relMSE 2.03e-3 -> 1.42e-3).
-            Some(v) => rdfc::smooth_variance(v, 2),
+            Some(v) => rdfc::smooth_variance(v, 2)?,
             None => {
                 report.note("variance: estimated from 3 x 3 colour statistics (no variance layer)");
-                estimate_variance(colour)
+                estimate_variance(colour)?
             }
         };
         progress.check()?;
-        let removed = report.time("outliers", || {
-            let n = outliers::remove_outliers(dx) + outliers::remove_outliers(dy);
+        let removed = report.time("outliers", || -> Result<u64> {
+            let n = outliers::remove_outliers(dx)? + outliers::remove_outliers(dy)?;
             outliers::zero_boundary(dx, true);
             outliers::zero_boundary(dy, false);
-            n
-        });
+            Ok(n)
+        })?;
         report.note(format!("gradient outliers replaced: {removed}"));
         progress.check()?;
         let (albedo, normal) = (frame.albedo(), frame.normal());
@@ -561,30 +572,33 @@ impl Reconstructor for Frgr {
                 "feature prefilter: variance estimated from 3 x 3 ranges at {spp} spp \
                  (bundles carry no feature variance)"
             ));
-            report.time("feature prefilter", || {
-                let filter = |f| {
+            report.time("feature prefilter", || -> Result<_> {
+                let filter = |f| -> Result<Cow<Image>> {
                     // After a cancel the feature stays as it is: the update below returns.
                     if progress.stopped() {
-                        return Cow::Borrowed(f);
+                        return Ok(Cow::Borrowed(f));
                     }
-                    let v = prefilter::feature_variance(f, spp);
-                    Cow::Owned(prefilter::prefilter(f, &v))
+                    let v = prefilter::feature_variance(f, spp)?;
+                    Ok(Cow::Owned(prefilter::prefilter(f, &v)?))
                 };
-                (albedo.map(filter), normal.map(filter))
-            })
+                Ok((
+                    albedo.map(filter).transpose()?,
+                    normal.map(filter).transpose()?,
+                ))
+            })?
         };
         progress.update(0.05)?;
         let guide = match self.cfg.guide {
             FrgrGuide::Rdfc => Cow::Owned(report.time("rdfc", || {
                 rdfc::rdfc(colour, &var, albedo.as_deref(), normal.as_deref(), progress)
-            })),
+            })?),
             FrgrGuide::PoissonL1 => report
                 .time("l1 guide", || {
                     // The Poisson guide sees the gradients as given (before outlier removal).
                     let clean = FrameBuilder::new()
-                        .image(Layer::Color, colour.clone())
-                        .image(Layer::Dx, scaled(frame.dx(), scale).into_owned())
-                        .image(Layer::Dy, scaled(frame.dy(), scale).into_owned())
+                        .image(Layer::Color, colour.try_clone()?)
+                        .image(Layer::Dx, scaled(frame.dx(), scale)?.into_owned())
+                        .image(Layer::Dy, scaled(frame.dy(), scale)?.into_owned())
                         .build(Policy::Replace)?;
                     let (l1, out) = self.l1.as_mut().expect("the L1 guide is planned");
                     l1.reconstruct_into(&clean, out, &mut Report::default(), &Progress::none())
@@ -597,7 +611,7 @@ impl Reconstructor for Frgr {
             FrgrGuide::Prior => {
                 report.skip("pre-denoiser (guide: the prior)");
                 let prior = self.prior.as_mut().expect("the prior guide is planned");
-                Cow::Owned(scaled(&*prior.get(frame, report, progress)?, scale).into_owned())
+                Cow::Owned(scaled(&*prior.get(frame, report, progress)?, scale)?.into_owned())
             }
         };
         progress.update(0.4)?;
@@ -609,7 +623,7 @@ impl Reconstructor for Frgr {
             albedo,
             normal,
             guide,
-            converged: converged_mask(frame),
+            converged: converged_mask(frame)?,
         };
         let (filtered, _variance) = self.run_level(&inputs, spp, 0, report, progress)?;
         for (o, &v) in out.as_mut_slice().iter_mut().zip(filtered.as_slice()) {

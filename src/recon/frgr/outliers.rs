@@ -9,6 +9,7 @@
 use rayon::prelude::*;
 
 use super::util::{reflect, PaddedRows, LUMA};
+use crate::error::Result;
 use crate::image::Image;
 
 /// Adds the luminances of one window offset's row to the sums: `sum += l`, `sum2 += l * l` in
@@ -28,26 +29,34 @@ fn add_row(sum: &mut [f64], sum2: &mut [f64], lum: &[f32]) {
     }
 }
 
-/// Replaces outliers of one gradient image in place; returns how many pixels were replaced.
+/// Replaces outliers of one gradient image in place; returns how many pixels were replaced,
+/// or [`Error::OutOfMemory`](crate::Error::OutOfMemory) (the image is then unchanged).
 ///
 /// The window statistics are summed row by row (vectorised over the row, borders from a
 /// reflect-101 padded copy); only the pixels that fail the test look at their window again
 /// for the median: the same bits as the per-pixel definition (tested), in about half its time.
-pub(crate) fn remove_outliers(g: &mut Image) -> u64 {
+pub(crate) fn remove_outliers(g: &mut Image) -> Result<u64> {
     let (w, h) = g.size();
     let n = w * h;
     if n == 0 {
-        return 0;
+        return Ok(0);
     }
-    let src = g.as_slice().to_vec();
-    let lum = Image::par_from_fn(1, w, h, |(_, x, y)| {
+    let src = g.try_clone()?;
+    let src = src.as_slice();
+    let lum = Image::try_par_from_fn(1, w, h, |(_, x, y)| {
         let i = y * w + x;
         LUMA[0] * src[i] + LUMA[1] * src[n + i] + LUMA[2] * src[2 * n + i]
-    });
-    let padded = PaddedRows::new(&lum, 2);
-    let replaced: Vec<(usize, [f32; 3])> = (0..h)
-        .into_par_iter()
-        .flat_map_iter(|y| {
+    })?;
+    let padded = PaddedRows::new(&lum, 2)?;
+    // Rows in parallel, each writing its medians into the three planes' rows.
+    let (r, rest) = g.as_mut_slice().split_at_mut(n);
+    let (gr, b) = rest.split_at_mut(n);
+    let replaced = r
+        .par_chunks_mut(w)
+        .zip(gr.par_chunks_mut(w))
+        .zip(b.par_chunks_mut(w))
+        .enumerate()
+        .map(|(y, ((r, gr), b))| {
             let (mut sum, mut sum2) = (vec![0.0f64; w], vec![0.0f64; w]);
             for dy in -2..=2 {
                 let qy = reflect(y as isize + dy, h);
@@ -57,14 +66,15 @@ pub(crate) fn remove_outliers(g: &mut Image) -> u64 {
                     }
                 }
             }
-            let (src, lum) = (&src, lum.as_slice());
-            (0..w).filter_map(move |x| {
+            let lum = lum.as_slice();
+            let mut replaced = 0;
+            for x in 0..w {
                 let mean = sum[x] / 24.0;
                 let var = ((sum2[x] - 24.0 * mean * mean) / 23.0).max(0.0);
                 let sd = var.sqrt();
                 let centre = f64::from(lum[y * w + x]);
                 if sd > 0.0 && (centre - mean).abs() < 3.0 * sd {
-                    return None;
+                    continue;
                 }
                 let idx = |dx: isize, dy: isize| {
                     reflect(y as isize + dy, h) * w + reflect(x as isize + dx, w)
@@ -81,21 +91,16 @@ pub(crate) fn remove_outliers(g: &mut Image) -> u64 {
                     let (_, m, _) = v.select_nth_unstable_by(12, f32::total_cmp);
                     *m
                 });
-                (median
-                    .iter()
-                    .zip(0..3)
-                    .any(|(&m, c)| m != src[c * n + y * w + x]))
-                .then_some((y * w + x, median))
-            })
+                let own = [r[x], gr[x], b[x]];
+                if median != own {
+                    [r[x], gr[x], b[x]] = median;
+                    replaced += 1;
+                }
+            }
+            replaced
         })
-        .collect();
-    let out = g.as_mut_slice();
-    for &(i, m) in &replaced {
-        for c in 0..3 {
-            out[c * n + i] = m[c];
-        }
-    }
-    replaced.len() as u64
+        .sum();
+    Ok(replaced)
 }
 
 /// Zeroes the column (`dx`) or row (`dy`) that carries no information.
@@ -123,7 +128,7 @@ mod tests {
         g.planes_mut()[[0, 3, 4]] = 50.0;
         g.planes_mut()[[1, 3, 4]] = 50.0;
         g.planes_mut()[[2, 3, 4]] = 50.0;
-        let n = remove_outliers(&mut g);
+        let n = remove_outliers(&mut g).unwrap();
         assert_eq!(n, 1);
         for c in 0..3 {
             // The median of a linear ramp's 5x5 window is the centre's value.
@@ -192,7 +197,7 @@ mod tests {
                 }
             });
             let mut got = g.clone();
-            remove_outliers(&mut got);
+            remove_outliers(&mut got).unwrap();
             assert_eq!(got, naive(&g), "{w} x {h}");
         }
     }
@@ -200,6 +205,6 @@ mod tests {
     #[test]
     fn constant_data_is_untouched() {
         let mut g = Image::from_fn(3, 6, 6, |_| 0.5);
-        assert_eq!(remove_outliers(&mut g), 0);
+        assert_eq!(remove_outliers(&mut g).unwrap(), 0);
     }
 }

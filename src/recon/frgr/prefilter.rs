@@ -32,7 +32,8 @@ use rayon::prelude::*;
 
 use super::fastmath::{exp_nonpositive, max, min};
 use super::util::{reflect, PaddedRows};
-use crate::image::Image;
+use crate::error::Result;
+use crate::image::{try_vec, Image};
 
 /// Radius of the prefilter's window (a disc).
 pub(crate) const RADIUS: usize = 4;
@@ -62,13 +63,13 @@ fn taps() -> Vec<(isize, isize, f32)> {
 /// mean of `spp` samples divides it by `spp`. Pixels inside a flat region or on either side of a
 /// pixel-aligned edge get 0 (nothing to filter), smooth ramps a small overestimate (which a
 /// symmetric filter leaves unchanged anyway).
-pub(crate) fn feature_variance(f: &Image, spp: f32) -> Image {
+pub(crate) fn feature_variance(f: &Image, spp: f32) -> Result<Image> {
     let (w, h) = f.size();
-    let mut out = Image::zeros(1, w, h);
+    let mut out = Image::try_zeros(1, w, h)?;
     if w == 0 || h == 0 {
-        return out;
+        return Ok(out);
     }
-    let padded = PaddedRows::new(f, 1);
+    let padded = PaddedRows::new(f, 1)?;
     let inv_spp = 1.0 / spp.max(1.0);
     out.as_mut_slice()
         .par_chunks_mut(w)
@@ -95,7 +96,7 @@ pub(crate) fn feature_variance(f: &Image, spp: f32) -> Image {
             }
             row.iter_mut().for_each(|v| *v *= inv_spp);
         });
-    out
+    Ok(out)
 }
 
 /// Pixels of a row processed together: their accumulators stay in the L1 cache across the
@@ -138,7 +139,7 @@ fn add_taps(
 
 /// Filters a 3-channel feature `f` whose per-pixel variance (summed over channels, 1 channel)
 /// is `v`.
-pub(crate) fn prefilter(f: &Image, v: &Image) -> Image {
+pub(crate) fn prefilter(f: &Image, v: &Image) -> Result<Image> {
     let (w, h) = f.size();
     assert_eq!(f.channels(), 3, "the prefilter takes 3-channel features");
     assert_eq!(
@@ -147,13 +148,13 @@ pub(crate) fn prefilter(f: &Image, v: &Image) -> Image {
         "one variance per pixel"
     );
     if w == 0 || h == 0 {
-        return f.clone();
+        return f.try_clone();
     }
-    let padded = PaddedRows::new(f, RADIUS);
-    let vpad = PaddedRows::new(v, RADIUS);
+    let padded = PaddedRows::new(f, RADIUS)?;
+    let vpad = PaddedRows::new(v, RADIUS)?;
     let taps = taps();
     // Per row: the 3 channels' sums, then the weights' sum and `inv`.
-    let mut rows = vec![0.0f32; h * 5 * w];
+    let mut rows = try_vec(h * 5 * w, 0.0f32)?;
     rows.par_chunks_mut(5 * w).enumerate().for_each(|(y, row)| {
         let (n0, rest) = row.split_at_mut(w);
         let (n1, rest) = rest.split_at_mut(w);
@@ -194,7 +195,7 @@ pub(crate) fn prefilter(f: &Image, v: &Image) -> Image {
             x0 += len;
         }
     });
-    Image::par_from_fn(3, w, h, |(c, x, y)| rows[(y * 5 + c) * w + x])
+    Image::try_par_from_fn(3, w, h, |(c, x, y)| rows[(y * 5 + c) * w + x])
 }
 
 #[cfg(test)]
@@ -256,7 +257,7 @@ mod tests {
         for (w, h) in [(23, 17), (4, 3), (1, 6)] {
             let f = random_feature(w, h, 7);
             let v = Image::from_fn(1, w, h, |(_, x, y)| 0.05 * f.at(0, x, y).powi(2));
-            let got = prefilter(&f, &v);
+            let got = prefilter(&f, &v).unwrap();
             let (want, _) = naive(&f, &v);
             for y in 0..h {
                 for x in 0..w {
@@ -272,7 +273,7 @@ mod tests {
     #[test]
     fn a_constant_feature_stays_constant() {
         let f = Image::from_fn(3, 15, 12, |(c, _, _)| [0.2, -0.5, 0.9][c]);
-        let got = prefilter(&f, &Image::from_fn(1, 15, 12, |_| 0.01));
+        let got = prefilter(&f, &Image::from_fn(1, 15, 12, |_| 0.01)).unwrap();
         for (g, e) in got.as_slice().iter().zip(f.as_slice()) {
             assert!((g - e).abs() < 1e-6, "{g} vs {e}");
         }
@@ -283,7 +284,7 @@ mod tests {
         // Left half 0, right half 1 (per channel), noise variance 1e-3: every weight across
         // the edge is below exp(-(3 - 2e-3) / 0.1) = 1e-13 (the tolerance is f32 rounding).
         let f = Image::from_fn(3, 20, 10, |(_, x, _)| if x < 10 { 0.0 } else { 1.0 });
-        let got = prefilter(&f, &Image::from_fn(1, 20, 10, |_| 1e-3));
+        let got = prefilter(&f, &Image::from_fn(1, 20, 10, |_| 1e-3)).unwrap();
         for (g, e) in got.as_slice().iter().zip(f.as_slice()) {
             assert!((g - e).abs() < 1e-6, "{g} vs {e}");
         }
@@ -294,7 +295,7 @@ mod tests {
         let noisy = random_feature(32, 32, 3);
         // The values are uniform in [0, 1): per-channel variance 1/12, summed 1/4.
         let v = Image::from_fn(1, 32, 32, |_| 0.25);
-        let got = prefilter(&noisy, &v);
+        let got = prefilter(&noisy, &v).unwrap();
         let spread = |img: &Image| {
             let s = img.as_slice();
             let m = s.iter().sum::<f32>() / s.len() as f32;
@@ -322,7 +323,7 @@ mod tests {
             3 => 0.3 * 0.2 + 0.7 * 0.8,
             _ => 0.8,
         });
-        let v = feature_variance(&f, 4.0);
+        let v = feature_variance(&f, 4.0).unwrap();
         for y in 0..5 {
             for x in 0..7 {
                 let want = if x == 3 { 3.0 * 0.0756 / 4.0 } else { 0.0 };

@@ -43,7 +43,8 @@
 use rayon::prelude::*;
 
 use super::util::reflect;
-use crate::image::Image;
+use crate::error::Result;
+use crate::image::{try_vec, Image};
 use crate::progress::Progress;
 use band::{Padded, Planes, Term, Unscale, BAND};
 pub(crate) use lanes::LANES;
@@ -70,18 +71,19 @@ struct Scratch<const K: usize> {
 /// [`filter_or_stop`], never stopped (the tests' entry point).
 #[cfg(test)]
 pub(crate) fn gradient_guided_filter(level: &QpLevel) -> (Image, Image, Skipped) {
-    filter_or_stop(level, &Progress::none())
+    filter_or_stop(level, &Progress::none()).expect("allocated")
 }
 
 /// Runs the filter over a level; returns the filtered colour, its variance, and the pixels
 /// skipped. Once `stop` is cancelled the bands not yet started are skipped (the result is then
-/// incomplete; the caller checks `stop`).
+/// incomplete; the caller checks `stop`). Fails only with
+/// [`Error::OutOfMemory`](crate::Error::OutOfMemory).
 ///
 /// A pixel whose whole window has zero colour and zero variance is skipped: its output is a
 /// convex combination of zeros whatever the weights, so 0 (and variance 0) exactly, and the QP
 /// is not solved (black backgrounds, letterboxing, masked-out regions). A converged pixel
 /// (`level.converged`) keeps its colour and variance.
-pub(crate) fn filter_or_stop(level: &QpLevel, stop: &Progress) -> (Image, Image, Skipped) {
+pub(crate) fn filter_or_stop(level: &QpLevel, stop: &Progress) -> Result<(Image, Image, Skipped)> {
     let al = level.alphas();
     // `b0` and `b3` are always on, so 6, 9, 12 or 15 rows.
     match 3 * al.iter().filter(|&&a| a != 0.0).count() {
@@ -97,12 +99,12 @@ fn filter_rows<const K: usize>(
     level: &QpLevel,
     al: &[f32; 5],
     stop: &Progress,
-) -> (Image, Image, Skipped) {
+) -> Result<(Image, Image, Skipped)> {
     let (w, h) = level.img.size();
-    let mut out = Image::zeros(3, w, h);
-    let mut out_var = Image::zeros(3, w, h);
+    let mut out = Image::try_zeros(3, w, h)?;
+    let mut out_var = Image::try_zeros(3, w, h)?;
     if w == 0 || h == 0 {
-        return (out, out_var, Skipped::default());
+        return Ok((out, out_var, Skipped::default()));
     }
     let r = level.radius;
     let cols: Vec<usize> = (0..w + 2 * r + LANES - 1)
@@ -112,12 +114,12 @@ fn filter_rows<const K: usize>(
         .into_par_iter()
         .map(|band| {
             if stop.stopped() {
-                (Vec::new(), Skipped::default()) // copied below as no rows
+                Ok((Vec::new(), Skipped::default())) // copied below as no rows
             } else {
                 filter_band::<K>(level, al, &cols, band)
             }
         })
-        .collect();
+        .collect::<Result<_>>()?;
     let mut skipped = Skipped::default();
     for (band, (o, s)) in bands.iter().enumerate() {
         skipped.empty += s.empty;
@@ -134,7 +136,7 @@ fn filter_rows<const K: usize>(
             }
         }
     }
-    (out, out_var, skipped)
+    Ok((out, out_var, skipped))
 }
 
 /// Filters image rows `band * BAND ..` (at most [`BAND`] of them); returns per row colour then
@@ -148,13 +150,13 @@ fn filter_band<const K: usize>(
     al: &[f32; 5],
     cols: &[usize],
     band: usize,
-) -> (Vec<f32>, Skipped) {
+) -> Result<(Vec<f32>, Skipped)> {
     let (w, h) = level.img.size();
     let (n_px, r) = (w * h, level.radius);
     let side = 2 * r + 1;
     let (img, var) = (level.img.as_slice(), level.var.as_slice());
     let (y0, rows) = (band * BAND, BAND.min(h - band * BAND));
-    let planes = Planes::new(level, cols, (y0, rows));
+    let planes = Planes::new(level, cols, (y0, rows))?;
     let terms = planes.terms(level, al, K);
     let ctx = Ctx::<K> {
         w,
@@ -169,12 +171,12 @@ fn filter_band<const K: usize>(
         up: planes.up.as_ref(),
     };
     let mut scratch = Scratch::<K> {
-        b: vec![[F32x::default(); K]; MAX_N],
-        v: vec![F32x::default(); MAX_N],
-        w: vec![F32x::default(); MAX_N],
+        b: try_vec(MAX_N, [F32x::default(); K])?,
+        v: try_vec(MAX_N, F32x::default())?,
+        w: try_vec(MAX_N, F32x::default())?,
     };
     // Per row: colour then variance, channel by channel.
-    let mut out = vec![0.0f32; 6 * w * rows];
+    let mut out = try_vec(6 * w * rows, 0.0f32)?;
     let mut skipped = Skipped::default();
     for (y, out) in (y0..y0 + rows).zip(out.chunks_exact_mut(6 * w)) {
         for x0 in (0..w).step_by(LANES) {
@@ -201,7 +203,7 @@ fn filter_band<const K: usize>(
             }
         }
     }
-    (out, skipped)
+    Ok((out, skipped))
 }
 
 /// What every lane group of a level reads.

@@ -37,7 +37,8 @@ use rayon::prelude::*;
 
 use super::fastmath::{exp_nonpositive, max, min};
 use super::util::{reflect, PaddedRows};
-use crate::image::Image;
+use crate::error::Result;
+use crate::image::{try_vec, Image};
 use crate::progress::Progress;
 
 /// One candidate filter: patch radius `f` and colour bandwidth (`None`: colour term off).
@@ -70,48 +71,55 @@ pub(crate) struct Feature<'a> {
 
 impl<'a> Feature<'a> {
     /// Prepares a feature: `D_p = max(|grad f|^2 (central differences, mean over channels), 1e-3)`.
-    pub fn new(img: &'a Image) -> Self {
+    pub fn new(img: &'a Image) -> Result<Self> {
         let (w, h) = img.size();
         let ch = img.channels();
         let n = w * h;
         let s = img.as_slice();
-        let norm = (0..n)
-            .into_par_iter()
-            .map(|i| {
-                let (x, y) = (i % w, i / w);
-                let mut g2 = 0.0;
-                for c in 0..ch {
-                    let at = |xx: isize, yy: isize| s[c * n + reflect(yy, h) * w + reflect(xx, w)];
-                    let gx =
-                        0.5 * (at(x as isize + 1, y as isize) - at(x as isize - 1, y as isize));
-                    let gy =
-                        0.5 * (at(x as isize, y as isize + 1) - at(x as isize, y as isize - 1));
-                    g2 += gx * gx + gy * gy;
-                }
-                KF * KF * (g2 / ch as f32).max(1e-3)
-            })
-            .collect();
-        Feature { img, norm }
+        let mut norm = try_vec(n, 0.0f32)?;
+        norm.par_iter_mut().enumerate().for_each(|(i, norm)| {
+            let (x, y) = (i % w, i / w);
+            let mut g2 = 0.0;
+            for c in 0..ch {
+                let at = |xx: isize, yy: isize| s[c * n + reflect(yy, h) * w + reflect(xx, w)];
+                let gx = 0.5 * (at(x as isize + 1, y as isize) - at(x as isize - 1, y as isize));
+                let gy = 0.5 * (at(x as isize, y as isize + 1) - at(x as isize, y as isize - 1));
+                g2 += gx * gx + gy * gy;
+            }
+            *norm = KF * KF * (g2 / ch as f32).max(1e-3);
+        });
+        Ok(Feature { img, norm })
     }
 }
 
 /// A per-channel box average of radius `r` of a variance image.
-pub(crate) fn smooth_variance(var: &Image, r: usize) -> Image {
+pub(crate) fn smooth_variance(var: &Image, r: usize) -> Result<Image> {
     let (w, h) = var.size();
-    let mut out = var.clone();
+    let mut out = Image::try_zeros(var.channels(), w, h)?;
     let mut tmp = Vec::new();
     for c in 0..var.channels() {
-        let src = var.plane(c).as_slice().expect("contiguous").to_vec();
+        let src = var.plane(c).to_slice().expect("contiguous");
         let dst = out.plane_mut(c).into_slice().expect("contiguous");
-        box_mean(&src, w, h, r, &mut tmp, dst);
+        box_mean(src, w, h, r, &mut tmp, dst)?;
     }
-    out
+    Ok(out)
 }
 
-/// Box sum of radius `r` over rows then columns (reflect-101), divided by the area.
-fn box_mean(src: &[f32], w: usize, h: usize, r: usize, tmp: &mut Vec<f32>, dst: &mut [f32]) {
+/// Box sum of radius `r` over rows then columns (reflect-101), divided by the area; `tmp`
+/// is scratch (grown to `w * h`).
+fn box_mean(
+    src: &[f32],
+    w: usize,
+    h: usize,
+    r: usize,
+    tmp: &mut Vec<f32>,
+    dst: &mut [f32],
+) -> Result<()> {
     let area = ((2 * r + 1) * (2 * r + 1)) as f32;
-    tmp.resize(w * h, 0.0);
+    if tmp.len() < w * h {
+        *tmp = try_vec(w * h, 0.0)?;
+    }
+    let tmp = &mut tmp[..w * h];
     tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         let s = &src[y * w..(y + 1) * w];
         let mut acc: f32 = (-(r as isize)..=r as isize).map(|d| s[reflect(d, w)]).sum();
@@ -131,6 +139,7 @@ fn box_mean(src: &[f32], w: usize, h: usize, r: usize, tmp: &mut Vec<f32>, dst: 
             *out = acc / area;
         }
     });
+    Ok(())
 }
 
 /// Side lengths (columns, rows) of the tiles [`nlm_candidates`] works on: a tile's inputs
@@ -389,7 +398,11 @@ impl Nlm<'_> {
     /// Filters the tile of columns `x0..x1`, rows `y0..y1`: per candidate `k` and data channel
     /// `c`, plane `k * channels + c` of the first result (tile-sized planes); per candidate,
     /// the centre weight ratio plane.
-    fn tile(&self, (x0, x1): (usize, usize), (y0, y1): (usize, usize)) -> (Vec<f32>, Vec<f32>) {
+    fn tile(
+        &self,
+        (x0, x1): (usize, usize),
+        (y0, y1): (usize, usize),
+    ) -> Result<(Vec<f32>, Vec<f32>)> {
         let (w, h) = (self.colour.w, self.colour.h);
         let (tw, th) = (x1 - x0, y1 - y0);
         let tn = tw * th;
@@ -404,17 +417,22 @@ impl Nlm<'_> {
             (y1 + p).min(h),
         );
         let dw = xe - xs;
-        let mut delta = vec![0.0f32; dw * (ye - ys)];
+        let mut delta = try_vec(dw * (ye - ys), 0.0f32)?;
         // Per slot (the offsets of a group): horizontal patch sums per radius, the rows'
         // vertical patch sums and feature distances.
-        let mut hsum = [0; GROUP].map(|_| vec![vec![0.0f32; tw * (ye - ys)]; self.radii.len()]);
+        let per_radius = |len| -> Result<Vec<Vec<f32>>> {
+            self.radii.iter().map(|_| try_vec(len, 0.0f32)).collect()
+        };
+        let mut hsum: Vec<Vec<Vec<f32>>> = (0..GROUP)
+            .map(|_| per_radius(tw * (ye - ys)))
+            .collect::<Result<_>>()?;
         let mut patched = [0; GROUP].map(|_| vec![vec![0.0f32; tw]; self.radii.len()]);
         let mut fd = [0; GROUP].map(|_| vec![0.0f32; tw]);
         let zeros = vec![0.0f32; tw];
         let mut acc = vec![0.0f32; tw];
-        let mut num = vec![0.0f32; m * dch * tn];
-        let mut den = vec![0.0f32; m * tn];
-        let mut maxw = vec![0.0f32; m * tn];
+        let mut num = try_vec(m * dch * tn, 0.0f32)?;
+        let mut den = try_vec(m * tn, 0.0f32)?;
+        let mut maxw = try_vec(m * tn, 0.0f32)?;
         let r = self.radius as isize;
         let offsets: Vec<(isize, isize)> = (-r..=r)
             .flat_map(|oy| (-r..=r).map(move |ox| (ox, oy)))
@@ -495,7 +513,7 @@ impl Nlm<'_> {
             }
         }
         // The centre takes the largest neighbour weight (at least 1e-3).
-        let mut ratio = vec![0.0f32; m * tn];
+        let mut ratio = try_vec(m * tn, 0.0f32)?;
         for k in 0..m {
             for (t, y) in (y0..y1).enumerate() {
                 let at = k * tn + t * tw;
@@ -516,7 +534,7 @@ impl Nlm<'_> {
                 }
             }
         }
-        (num, ratio)
+        Ok((num, ratio))
     }
 }
 
@@ -536,7 +554,7 @@ pub(crate) fn nlm_candidates(
     radius: usize,
     candidates: &[Candidate],
     stop: &Progress,
-) -> Vec<(Image, Vec<f32>)> {
+) -> Result<Vec<(Image, Vec<f32>)>> {
     assert!(
         colour.channels() == 3 && var.channels() == 3 && data.channels() == 3,
         "colour, variance and data have 3 channels"
@@ -551,17 +569,20 @@ pub(crate) fn nlm_candidates(
     radii.sort_unstable();
     radii.dedup();
     let nlm = Nlm {
-        colour: PaddedRows::new(colour, radius),
-        var: PaddedRows::new(var, radius),
-        data: PaddedRows::new(data, radius),
+        colour: PaddedRows::new(colour, radius)?,
+        var: PaddedRows::new(var, radius)?,
+        data: PaddedRows::new(data, radius)?,
         features: features
             .iter()
             .map(|f| {
                 let ch = f.img.channels() as f32;
-                let inv = f.norm.iter().map(|&d| 1.0 / (ch * d)).collect();
-                (PaddedRows::new(f.img, radius), inv)
+                let mut inv = try_vec(f.norm.len(), 0.0f32)?;
+                for (inv, &d) in inv.iter_mut().zip(&f.norm) {
+                    *inv = 1.0 / (ch * d);
+                }
+                Ok((PaddedRows::new(f.img, radius)?, inv))
             })
-            .collect(),
+            .collect::<Result<_>>()?,
         radius,
         candidates,
         patch: radii.last().copied().unwrap_or(0),
@@ -587,16 +608,16 @@ pub(crate) fn nlm_candidates(
         .par_iter()
         .map(|&(xr, yr)| {
             if stop.stopped() {
-                (Vec::new(), Vec::new())
+                Ok((Vec::new(), Vec::new()))
             } else {
                 nlm.tile(xr, yr)
             }
         })
-        .collect();
+        .collect::<Result<_>>()?;
     let (m, dch) = (candidates.len(), data.channels());
     let mut out: Vec<(Image, Vec<f32>)> = (0..m)
-        .map(|_| (Image::zeros(dch, w, h), vec![0.0f32; n]))
-        .collect();
+        .map(|_| Ok((Image::try_zeros(dch, w, h)?, try_vec(n, 0.0f32)?)))
+        .collect::<Result<_>>()?;
     for (&((x0, x1), (y0, y1)), (num, ratio)) in tiles.iter().zip(&results) {
         if num.is_empty() {
             continue; // skipped after a cancel
@@ -614,7 +635,7 @@ pub(crate) fn nlm_candidates(
             }
         }
     }
-    out
+    Ok(out)
 }
 
 /// The signature of [`nlm_candidates`] (tests swap in a straightforward version).
@@ -626,7 +647,7 @@ type NlmFn = fn(
     usize,
     &[Candidate],
     &Progress,
-) -> Vec<(Image, Vec<f32>)>;
+) -> Result<Vec<(Image, Vec<f32>)>>;
 
 /// The RDFC pre-denoised guide of `colour` (variance of the mean `var`); incomplete when
 /// `stop` is cancelled (the caller checks it).
@@ -636,7 +657,7 @@ pub(crate) fn rdfc(
     albedo: Option<&Image>,
     normal: Option<&Image>,
     stop: &Progress,
-) -> Image {
+) -> Result<Image> {
     rdfc_with(colour, var, albedo, normal, nlm_candidates, stop)
 }
 
@@ -647,45 +668,46 @@ fn rdfc_with(
     normal: Option<&Image>,
     nlm_candidates: NlmFn,
     stop: &Progress,
-) -> Image {
+) -> Result<Image> {
     let (w, h) = colour.size();
     let n = w * h;
-    let features: Vec<Feature> = albedo.into_iter().chain(normal).map(Feature::new).collect();
-    let filtered = nlm_candidates(colour, var, &features, colour, 10, &CANDIDATES, stop);
+    let features: Vec<Feature> = albedo
+        .into_iter()
+        .chain(normal)
+        .map(Feature::new)
+        .collect::<Result<_>>()?;
+    let filtered = nlm_candidates(colour, var, &features, colour, 10, &CANDIDATES, stop)?;
     if stop.stopped() {
-        return colour.clone();
+        return colour.try_clone();
     }
     // SURE per candidate, smoothed by a 3 x 3 box.
     let (c, v) = (colour.as_slice(), var.as_slice());
-    let mut tmp = Vec::new();
+    let (mut raw, mut tmp) = (try_vec(n, 0.0f32)?, Vec::new());
     let sure: Vec<Vec<f32>> = filtered
         .iter()
         .map(|(f, ratio)| {
             let fs = f.as_slice();
-            let raw: Vec<f32> = (0..n)
-                .into_par_iter()
-                .map(|i| {
-                    (0..3)
-                        .map(|ch| {
-                            let (e, vv) = (fs[ch * n + i] - c[ch * n + i], v[ch * n + i]);
-                            e * e - vv + 2.0 * vv * ratio[i]
-                        })
-                        .sum()
-                })
-                .collect();
-            let mut smooth = vec![0.0; n];
-            box_mean(&raw, w, h, 1, &mut tmp, &mut smooth);
-            smooth
+            raw.par_iter_mut().enumerate().for_each(|(i, raw)| {
+                *raw = (0..3)
+                    .map(|ch| {
+                        let (e, vv) = (fs[ch * n + i] - c[ch * n + i], v[ch * n + i]);
+                        e * e - vv + 2.0 * vv * ratio[i]
+                    })
+                    .sum()
+            });
+            let mut smooth = try_vec(n, 0.0)?;
+            box_mean(&raw, w, h, 1, &mut tmp, &mut smooth)?;
+            Ok(smooth)
         })
-        .collect();
+        .collect::<Result<_>>()?;
     let m = filtered.len();
-    let onehot = Image::par_from_fn(m, w, h, |(k, x, y)| {
+    let onehot = Image::try_par_from_fn(m, w, h, |(k, x, y)| {
         let i = y * w + x;
         let best = (0..m)
             .min_by(|&a, &b| sure[a][i].total_cmp(&sure[b][i]))
             .unwrap_or(0);
         f32::from(u8::from(best == k))
-    });
+    })?;
     let sel = nlm_candidates(
         colour,
         var,
@@ -697,11 +719,11 @@ fn rdfc_with(
             kc: Some(0.5),
         }],
         stop,
-    )
+    )?
     .remove(0)
     .0;
     let s = sel.as_slice();
-    Image::par_from_fn(3, w, h, |(ch, x, y)| {
+    Image::try_par_from_fn(3, w, h, |(ch, x, y)| {
         let i = y * w + x;
         let (mut acc, mut tot) = (0.0, 0.0);
         for (k, (f, _)) in filtered.iter().enumerate() {

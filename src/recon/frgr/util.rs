@@ -2,7 +2,8 @@
 
 use rayon::prelude::*;
 
-use crate::image::Image;
+use crate::error::Result;
+use crate::image::{try_vec, Image};
 pub(crate) use crate::recon::ops::reflect;
 
 /// Rec. 709 luminance weights.
@@ -20,11 +21,11 @@ pub(crate) struct PaddedRows {
 }
 
 impl PaddedRows {
-    pub(crate) fn new(img: &Image, pad: usize) -> Self {
+    pub(crate) fn new(img: &Image, pad: usize) -> Result<Self> {
         let (w, h) = img.size();
         let stride = w + 2 * pad;
         let s = img.as_slice();
-        let mut data = vec![0.0; img.channels() * h * stride];
+        let mut data = try_vec(img.channels() * h * stride, 0.0)?;
         data.par_chunks_mut(stride)
             .enumerate()
             .for_each(|(row, out)| {
@@ -34,13 +35,13 @@ impl PaddedRows {
                     out[j] = src[reflect(j as isize - pad as isize, w)];
                 }
             });
-        PaddedRows {
+        Ok(PaddedRows {
             data,
             channels: img.channels(),
             w,
             h,
             pad,
-        }
+        })
     }
 
     /// [`PaddedRows::row`] of channels 0, 1 and 2.

@@ -537,7 +537,7 @@ mod enabled {
             let mut done = 0.0;
             let mut empty_tiles = 0;
             let mut converged_tiles = 0;
-            let converged = converged_mask(frame);
+            let converged = converged_mask(frame)?;
             for tile in self.tiles.clone() {
                 let win = Window {
                     y0: tile.y.origin,

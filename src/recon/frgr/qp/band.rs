@@ -3,7 +3,8 @@
 
 use super::lanes::F32x;
 use super::level::QpLevel;
-use crate::image::Image;
+use crate::error::Result;
+use crate::image::{try_vec, Image};
 use crate::recon::frgr::util::reflect;
 
 /// Image rows per band. A band pads its own rows (plus the windows' halo) of every plane it
@@ -28,9 +29,9 @@ impl Padded {
         r: usize,
         (y0, rows): (usize, usize),
         f: impl Fn(usize, usize) -> f32,
-    ) -> Padded {
+    ) -> Result<Padded> {
         let (stride, padded_rows) = (cols.len(), rows + 2 * r);
-        let mut data = vec![0.0f32; channels * padded_rows * stride];
+        let mut data = try_vec(channels * padded_rows * stride, 0.0f32)?;
         for (row, out) in data.chunks_exact_mut(stride).enumerate() {
             let (c, py) = (row / padded_rows, row % padded_rows);
             let y = reflect((y0 + py) as isize - r as isize, h);
@@ -38,11 +39,11 @@ impl Padded {
                 *o = f(c, y * w + x);
             }
         }
-        Padded {
+        Ok(Padded {
             data,
             stride,
             plane: padded_rows * stride,
-        }
+        })
     }
 
     /// Padded row `py` of channel `c` (image row `y0 + py - r`) from padded column `x0`.
@@ -65,7 +66,7 @@ pub(super) struct Planes {
 }
 
 impl Planes {
-    pub(super) fn new(level: &QpLevel, cols: &[usize], band: (usize, usize)) -> Planes {
+    pub(super) fn new(level: &QpLevel, cols: &[usize], band: (usize, usize)) -> Result<Planes> {
         let dims = level.img.size();
         let (n_px, r) = (dims.0 * dims.1, level.radius);
         let plain = |img: &Image| {
@@ -74,9 +75,9 @@ impl Planes {
         };
         let var = level.var.as_slice();
         let up_var = level.up.map(|(_, v)| v.as_slice());
-        Planes {
-            img: plain(level.img),
-            var: plain(level.var),
+        Ok(Planes {
+            img: plain(level.img)?,
+            var: plain(level.var)?,
             v: Padded::new(1, dims, cols, r, band, |_, q| {
                 let mut vq = 0.0;
                 for c in 0..3 {
@@ -86,12 +87,12 @@ impl Planes {
                     }
                 }
                 vq
-            }),
-            enhanced: plain(level.enhanced),
-            albedo: level.albedo.map(plain),
-            normal: level.normal.map(plain),
-            up: level.up.map(|(u, _)| plain(u)),
-        }
+            })?,
+            enhanced: plain(level.enhanced)?,
+            albedo: level.albedo.map(plain).transpose()?,
+            normal: level.normal.map(plain).transpose()?,
+            up: level.up.map(|(u, _)| plain(u)).transpose()?,
+        })
     }
 
     /// The bias terms whose input is present, in the release's order: those in the objective

@@ -16,7 +16,7 @@ fn naive_nlm_candidates(
     radius: usize,
     candidates: &[Candidate],
     _stop: &Progress,
-) -> Vec<(Image, Vec<f32>)> {
+) -> Result<Vec<(Image, Vec<f32>)>> {
     let (w, h) = colour.size();
     let n = w * h;
     let dch = data.channels();
@@ -71,7 +71,7 @@ fn naive_nlm_candidates(
             });
             for (k, cand) in candidates.iter().enumerate() {
                 if cand.kc.is_some() {
-                    box_mean(&delta, w, h, cand.patch, &mut tmp, &mut patched[k]);
+                    box_mean(&delta, w, h, cand.patch, &mut tmp, &mut patched[k]).unwrap();
                 }
             }
             // One weight image per candidate (one exp per pixel), then accumulate.
@@ -107,7 +107,7 @@ fn naive_nlm_candidates(
             });
         }
     }
-    (0..m)
+    Ok((0..m)
         .map(|k| {
             let mut out = Image::zeros(dch, w, h);
             let mut ratio = vec![0.0f32; n];
@@ -122,7 +122,7 @@ fn naive_nlm_candidates(
             }
             (out, ratio)
         })
-        .collect()
+        .collect())
 }
 
 /// A noisy frame with edges, varying variance and two feature buffers.
@@ -175,7 +175,10 @@ fn tiled_nlm_matches_the_straightforward_one() {
     // passes' settings; outputs within 1e-4 relative, ratios within 1e-4.
     let (w, h) = (TILE.0 + 21, TILE.1 + 9);
     let (colour, var, albedo, normal) = synthetic(w, h);
-    let feats = [Feature::new(&albedo), Feature::new(&normal)];
+    let feats = [
+        Feature::new(&albedo).unwrap(),
+        Feature::new(&normal).unwrap(),
+    ];
     let onehot = Image::from_fn(3, w, h, |(c, x, y)| f32::from(u8::from((x + y) % 3 == c)));
     let sel = [Candidate {
         patch: 1,
@@ -188,8 +191,10 @@ fn tiled_nlm_matches_the_straightforward_one() {
         (&feats[1..], &onehot, 3, &sel),
     ];
     for (f, data, radius, cands) in cases {
-        let fast = nlm_candidates(&colour, &var, f, data, radius, cands, &Progress::none());
-        let slow = naive_nlm_candidates(&colour, &var, f, data, radius, cands, &Progress::none());
+        let fast =
+            nlm_candidates(&colour, &var, f, data, radius, cands, &Progress::none()).unwrap();
+        let slow =
+            naive_nlm_candidates(&colour, &var, f, data, radius, cands, &Progress::none()).unwrap();
         for ((a, ra), (b, rb)) in fast.iter().zip(&slow) {
             let d = max_rel(a, b, 1e-3);
             assert!(d <= 1e-4, "radius {radius}: output differs by {d:e}");
@@ -206,7 +211,10 @@ fn tiled_nlm_matches_the_straightforward_one() {
 #[test]
 fn tiled_nlm_does_not_depend_on_the_thread_count() {
     let (colour, var, albedo, normal) = synthetic(TILE.0 + 5, 2 * TILE.1 + 3);
-    let feats = [Feature::new(&albedo), Feature::new(&normal)];
+    let feats = [
+        Feature::new(&albedo).unwrap(),
+        Feature::new(&normal).unwrap(),
+    ];
     let run = |threads| {
         with_threads(threads, || {
             nlm_candidates(
@@ -218,6 +226,7 @@ fn tiled_nlm_does_not_depend_on_the_thread_count() {
                 &CANDIDATES,
                 &Progress::none(),
             )
+            .unwrap()
         })
     };
     let (one, three) = (run(1), run(3));
@@ -231,7 +240,10 @@ fn tiled_nlm_does_not_depend_on_the_thread_count() {
 fn tiled_nlm_matches_the_straightforward_one_on_tiny_images() {
     for (w, h) in [(1, 1), (2, 1), (1, 5), (5, 3), (4, 9), (7, 7), (12, 2)] {
         let (colour, var, albedo, normal) = synthetic(w, h);
-        let feats = [Feature::new(&albedo), Feature::new(&normal)];
+        let feats = [
+            Feature::new(&albedo).unwrap(),
+            Feature::new(&normal).unwrap(),
+        ];
         let fast = nlm_candidates(
             &colour,
             &var,
@@ -240,7 +252,8 @@ fn tiled_nlm_matches_the_straightforward_one_on_tiny_images() {
             10,
             &CANDIDATES,
             &Progress::none(),
-        );
+        )
+        .unwrap();
         let slow = naive_nlm_candidates(
             &colour,
             &var,
@@ -249,7 +262,8 @@ fn tiled_nlm_matches_the_straightforward_one_on_tiny_images() {
             10,
             &CANDIDATES,
             &Progress::none(),
-        );
+        )
+        .unwrap();
         for ((a, _), (b, _)) in fast.iter().zip(&slow) {
             let d = max_rel(a, b, 1e-3);
             assert!(d <= 1e-4, "{w} x {h}: output differs by {d:e}");
@@ -266,7 +280,8 @@ fn rdfc_matches_the_straightforward_one() {
         Some(&albedo),
         Some(&normal),
         &Progress::none(),
-    );
+    )
+    .unwrap();
     let slow = rdfc_with(
         &colour,
         &var,
@@ -274,7 +289,8 @@ fn rdfc_matches_the_straightforward_one() {
         Some(&normal),
         naive_nlm_candidates,
         &Progress::none(),
-    );
+    )
+    .unwrap();
     let d = max_rel(&fast, &slow, 1e-3);
     assert!(d <= 1e-4, "{d:e}");
 }
@@ -292,10 +308,10 @@ fn rdfc_on_frames_matches_the_straightforward_one() {
     paths.extend(std::env::var("GDRECON_RDFC_FRAME").ok());
     for path in paths {
         let frame = crate::io::read_bundle(&path, crate::validate::Policy::Replace).unwrap();
-        let var = smooth_variance(frame.variance().unwrap(), 2);
+        let var = smooth_variance(frame.variance().unwrap(), 2).unwrap();
         let (colour, albedo, normal) = (frame.color(), frame.albedo(), frame.normal());
         let t = std::time::Instant::now();
-        let fast = rdfc(colour, &var, albedo, normal, &Progress::none());
+        let fast = rdfc(colour, &var, albedo, normal, &Progress::none()).unwrap();
         let t_fast = t.elapsed();
         let t = std::time::Instant::now();
         let slow = rdfc_with(
@@ -305,7 +321,8 @@ fn rdfc_on_frames_matches_the_straightforward_one() {
             normal,
             naive_nlm_candidates,
             &Progress::none(),
-        );
+        )
+        .unwrap();
         let t_slow = t.elapsed();
         let peak = slow.as_slice().iter().fold(0.0f32, |m, v| m.max(v.abs()));
         let abs = fast.max_abs_diff(&slow);
@@ -317,7 +334,11 @@ fn rdfc_on_frames_matches_the_straightforward_one() {
             "{path}: fast {t_fast:?}, straightforward {t_slow:?}; guide: max |diff| {abs:e} (peak {peak:e}), max rel (floor 1e-3) {rel:e}, {over} values over 1e-4"
         );
         // The candidates alone (no argmin, whose near-ties can flip either way).
-        let feats: Vec<Feature> = albedo.into_iter().chain(normal).map(Feature::new).collect();
+        let feats: Vec<Feature> = albedo
+            .into_iter()
+            .chain(normal)
+            .map(|f| Feature::new(f).unwrap())
+            .collect();
         let a = nlm_candidates(
             colour,
             &var,
@@ -326,7 +347,8 @@ fn rdfc_on_frames_matches_the_straightforward_one() {
             10,
             &CANDIDATES,
             &Progress::none(),
-        );
+        )
+        .unwrap();
         let b = naive_nlm_candidates(
             colour,
             &var,
@@ -335,7 +357,8 @@ fn rdfc_on_frames_matches_the_straightforward_one() {
             10,
             &CANDIDATES,
             &Progress::none(),
-        );
+        )
+        .unwrap();
         let rel = (a.iter().zip(&b))
             .map(|((x, _), (y, _))| max_rel(x, y, 1e-3))
             .fold(0.0, f32::max);
@@ -349,7 +372,7 @@ fn zero_variance_returns_the_input() {
     let img = Image::from_fn(3, w, h, |(c, x, y)| {
         ((x * 3 + y * 5 + c) % 7) as f32 * 0.1 + 0.05
     });
-    let out = rdfc(&img, &Image::zeros(3, w, h), None, None, &Progress::none());
+    let out = rdfc(&img, &Image::zeros(3, w, h), None, None, &Progress::none()).unwrap();
     let d = out.max_abs_diff(&img);
     assert!(d < 1e-5, "{d}");
 }
@@ -366,7 +389,7 @@ fn noise_is_reduced_on_a_flat_image() {
     };
     let img = Image::from_fn(3, w, h, |_| 0.5 + rnd());
     let var = Image::from_fn(3, w, h, |_| 0.2 * 0.2 / 12.0);
-    let out = rdfc(&img, &var, None, None, &Progress::none());
+    let out = rdfc(&img, &var, None, None, &Progress::none()).unwrap();
     let mse = |a: &Image| {
         a.as_slice()
             .iter()
@@ -385,6 +408,6 @@ fn noise_is_reduced_on_a_flat_image() {
 fn box_mean_of_a_constant_is_the_constant() {
     let src = vec![2.0f32; 7 * 5];
     let (mut tmp, mut dst) = (Vec::new(), vec![0.0; 35]);
-    box_mean(&src, 7, 5, 3, &mut tmp, &mut dst);
+    box_mean(&src, 7, 5, 3, &mut tmp, &mut dst).unwrap();
     assert!(dst.iter().all(|&v| (v - 2.0).abs() < 1e-6));
 }
