@@ -23,6 +23,8 @@ Steps, for one frame (arrays H x W x C, float32, linear radiance):
  7. Gaussian bias correction: kernel radius 45, sigma 15 (91 taps, normalised), separable,
     zero-padded borders; gain = (blur(R+G+B of input colour) + 1e-9) /
     (blur(R+G+B of output) + 1e-9), multiplied into all three channels.
+The library then clamps every method's output to the base image's noise band (`noise_band`,
+src/recon/band.rs); that is not part of this reference, and the parity tests turn it off.
 """
 import os
 

@@ -17,6 +17,7 @@
 //! and the C API.
 
 pub mod auto;
+mod band;
 pub mod converged;
 #[cfg(feature = "testing")]
 pub mod copy;

@@ -16,8 +16,9 @@ use std::borrow::Cow;
 
 use rayon::prelude::*;
 
+use super::band::{banded, NOISE_BAND, NOISE_BAND_DOC};
 use super::converged::converged_mask;
-use super::param::{choices, Param, Params, Preset};
+use super::param::{choices, Param, Params, Preset, Range};
 use super::poisson_l1::{l1_memory, PoissonL1};
 use super::prior::{prior_memory, Prior, Quality};
 use super::{bytes_for, Method, PoissonL1Config, Reconstructor, Register, MIB};
@@ -71,6 +72,9 @@ pub struct FrgrConfig {
     pub guide: FrgrGuide,
     /// Prefilter albedo and normal before every stage reads them.
     pub prefilter: bool,
+    /// Half-width of the noise band the output is clamped to, in standard deviations of the
+    /// base image's noise (`recon/band.rs`); 0: off.
+    pub noise_band: f32,
 }
 
 impl Default for FrgrConfig {
@@ -81,16 +85,18 @@ impl Default for FrgrConfig {
             enhance_iterations: 250,
             guide: FrgrGuide::Rdfc,
             prefilter: true,
+            noise_band: NOISE_BAND,
         }
     }
 }
 
 impl FrgrConfig {
-    /// The release's settings, literally: the reference mode (1000 enhancement iterations),
-    /// kept for comparison with the default fast mode.
+    /// The release's settings, literally: the reference mode (1000 enhancement iterations, no
+    /// noise band), kept for comparison with the default fast mode.
     pub fn reference() -> Self {
         FrgrConfig {
             enhance_iterations: REFERENCE_ENHANCE_ITERATIONS,
+            noise_band: 0.0,
             ..FrgrConfig::default()
         }
     }
@@ -143,11 +149,19 @@ impl Params for FrgrConfig {
             |c| c.prefilter,
             |c, v| c.prefilter = v,
         ),
+        Param::float(
+            "noise_band",
+            Range::closed(0.0, 1e6),
+            NOISE_BAND_DOC,
+            |c| c.noise_band,
+            |c, v| c.noise_band = v,
+        ),
     ];
 
     const PRESETS: &'static [Preset<Self>] = &[Preset {
         name: "reference",
-        doc: "the release's schedule literally: 1000 gradient-enhancement iterations",
+        doc: "the release's schedule literally: 1000 gradient-enhancement iterations, no noise \
+              band",
         config: FrgrConfig::reference,
     }];
 }
@@ -170,7 +184,8 @@ impl Register for FrgrConfig {
         width: usize,
         height: usize,
     ) -> Result<Box<dyn Reconstructor>> {
-        Ok(Box::new(Frgr::new(context, *self, width, height)?))
+        let inner = Box::new(Frgr::new(context, *self, width, height)?);
+        Ok(banded(inner, self.noise_band))
     }
 
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {

@@ -57,6 +57,9 @@ impl GradNetPrecision {
     }
 }
 
+#[cfg(feature = "gradnet")]
+use super::band::banded;
+use super::band::{NOISE_BAND, NOISE_BAND_DOC};
 use super::param::{choices, Param, Params, Range};
 use super::{Reconstructor, Register};
 use crate::context::Context;
@@ -91,6 +94,9 @@ pub struct GradNetConfig {
     /// step 6b, `docs/benchmarks.md`): chosen on the validation split (2 over 1), where it cut
     /// the error on `studio` 6-18x and on `dusk` 4-8x.
     pub range_limit: f32,
+    /// Half-width of the noise band the output is clamped to, in standard deviations of the
+    /// base image's noise (`recon/band.rs`); 0: off.
+    pub noise_band: f32,
 }
 
 impl Default for GradNetConfig {
@@ -104,6 +110,7 @@ impl Default for GradNetConfig {
             tile_size: DEFAULT_TILE,
             bias_correction: true,
             range_limit: 2.0,
+            noise_band: NOISE_BAND,
         }
     }
 }
@@ -154,6 +161,13 @@ impl Params for GradNetConfig {
             |c| c.range_limit,
             |c, v| c.range_limit = v,
         ),
+        Param::float(
+            "noise_band",
+            Range::closed(0.0, 1e6),
+            NOISE_BAND_DOC,
+            |c| c.noise_band,
+            |c, v| c.noise_band = v,
+        ),
         Param::bool(
             "use_features",
             "Use albedo, normal and depth when the frame has them (the full model); false \
@@ -191,12 +205,10 @@ impl Register for GradNetConfig {
         height: usize,
     ) -> Result<Box<dyn Reconstructor>> {
         #[cfg(feature = "gradnet")]
-        return Ok(Box::new(GradNet::new(
-            self.clone(),
-            context,
-            width,
-            height,
-        )?));
+        return Ok(banded(
+            Box::new(GradNet::new(self.clone(), context, width, height)?),
+            self.noise_band,
+        ));
         #[cfg(not(feature = "gradnet"))]
         {
             let _ = (context, width, height);
