@@ -22,6 +22,7 @@
 
 use rayon::prelude::*;
 
+use super::param::{Param, Range};
 use super::{Method, Reconstructor};
 use crate::error::Result;
 use crate::frame::Frame;
@@ -33,8 +34,20 @@ use crate::report::Report;
 /// Default `noise_band`: the band's half-width in standard deviations of the base's noise.
 pub(crate) const NOISE_BAND: f32 = 5.0;
 
+/// The `noise_band` entry of a method's parameter table (`get` and `set` reach its field):
+/// one name, range and meaning for every method that has a band.
+pub(crate) const fn param<C>(get: fn(&C) -> f32, set: fn(&mut C, f32)) -> Param<C> {
+    Param::float(
+        "noise_band",
+        Range::closed(0.0, 1e6),
+        NOISE_BAND_DOC,
+        get,
+        set,
+    )
+}
+
 /// The documentation of every method's `noise_band` parameter.
-pub(crate) const NOISE_BAND_DOC: &str =
+const NOISE_BAND_DOC: &str =
     "Clamp the output to the base image ± this many standard deviations of its noise (the \
      variance layer's 3 x 3 mean): where a reconstruction leaves the base by more, it is \
      wrong there; 0: off (frames without a variance layer are never clamped)";

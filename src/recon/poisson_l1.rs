@@ -31,7 +31,7 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
-use super::band::{banded, NOISE_BAND, NOISE_BAND_DOC};
+use super::band::{self, banded, NOISE_BAND};
 use super::dct::DctPoisson;
 use super::multigrid::{multigrid_bytes, Multigrid};
 use super::ops::{apply_weighted_dot, plane_sums, Dims, RowWeights};
@@ -275,13 +275,7 @@ impl Params for PoissonL1Config {
             |c| c.prior_alpha,
             |c, v| c.prior_alpha = v,
         ),
-        Param::float(
-            "noise_band",
-            Range::closed(0.0, 1e6),
-            NOISE_BAND_DOC,
-            |c| c.noise_band,
-            |c, v| c.noise_band = v,
-        ),
+        band::param(|c| c.noise_band, |c, v| c.noise_band = v),
     ];
 
     const PRESETS: &'static [Preset<Self>] = &[

@@ -16,9 +16,9 @@ use std::borrow::Cow;
 
 use rayon::prelude::*;
 
-use super::band::{banded, NOISE_BAND, NOISE_BAND_DOC};
+use super::band::{self, banded, NOISE_BAND};
 use super::converged::converged_mask;
-use super::param::{choices, Param, Params, Preset, Range};
+use super::param::{choices, Param, Params, Preset};
 use super::poisson_l1::{l1_memory, PoissonL1};
 use super::prior::{prior_memory, Prior, Quality};
 use super::{bytes_for, Method, PoissonL1Config, Reconstructor, Register, MIB};
@@ -149,13 +149,7 @@ impl Params for FrgrConfig {
             |c| c.prefilter,
             |c, v| c.prefilter = v,
         ),
-        Param::float(
-            "noise_band",
-            Range::closed(0.0, 1e6),
-            NOISE_BAND_DOC,
-            |c| c.noise_band,
-            |c, v| c.noise_band = v,
-        ),
+        band::param(|c| c.noise_band, |c, v| c.noise_band = v),
     ];
 
     const PRESETS: &'static [Preset<Self>] = &[Preset {

@@ -59,7 +59,7 @@ impl GradNetPrecision {
 
 #[cfg(feature = "gradnet")]
 use super::band::banded;
-use super::band::{NOISE_BAND, NOISE_BAND_DOC};
+use super::band::{self, NOISE_BAND};
 use super::param::{choices, Param, Params, Range};
 use super::{Reconstructor, Register};
 use crate::context::Context;
@@ -161,13 +161,7 @@ impl Params for GradNetConfig {
             |c| c.range_limit,
             |c, v| c.range_limit = v,
         ),
-        Param::float(
-            "noise_band",
-            Range::closed(0.0, 1e6),
-            NOISE_BAND_DOC,
-            |c| c.noise_band,
-            |c, v| c.noise_band = v,
-        ),
+        band::param(|c| c.noise_band, |c, v| c.noise_band = v),
         Param::bool(
             "use_features",
             "Use albedo, normal and depth when the frame has them (the full model); false \
