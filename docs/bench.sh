@@ -59,7 +59,7 @@ echo "== 1/3 validation and test splits: every method, the prior paths, the base
 for split in val test; do
   declare -n set="$split"
   "$bin" bench "${set[@]}" \
-    --settings l2,l1,l1:fast,frgr,gradnet,gradnet:range_limit=0,prior,l1:prior,l2:data=prior,frgr:guide=prior,auto \
+    --settings l2,l1,l1:fast,frgr,gradnet,gradnet:range_limit=0,prior,l1:prior,l2:data=prior,frgr:guide=prior,combiner,auto \
     --baselines --against-oidn --runs 3 \
     --warmup 1 "${threads[@]}" --out-dir "$out/$split" \
     --title "gdrecon bench: $split split (320 x 180, 8 families, 4 / 16 / 64 spp, 4096 spp references)"
@@ -67,12 +67,12 @@ done
 cp "$out/val/summary.md" "$out/summary.md"
 
 echo "== 2/3 1280 x 720: every method and the prior paths, runs 5 (about 9 minutes, frgr most of it)"
-"$bin" bench "${hd[@]}" --settings l2,l1,frgr,gradnet,l1:prior --against-oidn --runs 5 --warmup 1 \
+"$bin" bench "${hd[@]}" --settings l2,l1,frgr,gradnet,l1:prior,combiner --against-oidn --runs 5 --warmup 1 \
   "${threads[@]}" --out-dir "$out/720p" \
   --title "1280 x 720, 16 spp, 256 spp references"
 
 echo "== 3/3 scaling against OIDN: l2, l1, l1:prior, frgr, gradnet at 0.5, 1, 2 x of cornell 720p, runs 3 (about 10 minutes)"
-"$bin" bench "${hd[0]}" --settings l2,l1,l1:prior,frgr,gradnet --scales 0.5,1,2 --against-oidn \
+"$bin" bench "${hd[0]}" --settings l2,l1,l1:prior,combiner,frgr,gradnet --scales 0.5,1,2 --against-oidn \
   --runs 3 --warmup 1 "${threads[@]}" --out-dir "$out/scaling" \
   --title "Resolution scaling against OIDN (cornell, 720p = 1x)"
 

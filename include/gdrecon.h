@@ -325,7 +325,7 @@ gdr_error gdr_context_set_log_callback(gdr_context *ctx, gdr_log_fn callback, vo
 // Committing twice is an error (`GDR_ERROR_INVALID_OPERATION`); so is setting `threads` or a path afterwards.
 gdr_error gdr_context_commit(gdr_context *ctx);
 
-// Create a filter running `method` (`"l2"`, `"l1"`, `"frgr"`, `"gradnet"`, `"prior"`, `"auto"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
+// Create a filter running `method` (`"l2"`, `"l1"`, `"frgr"`, `"gradnet"`, `"prior"`, `"combiner"`, `"auto"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
 gdr_error gdr_filter_new(gdr_context *ctx, const char *method, gdr_filter **out);
 
 // Add a reference to `filter`; each reference is dropped by one `gdr_filter_release`.

@@ -244,9 +244,7 @@ fn model_errors_are_distinct() {
     let wrong = with_model(altered.clone());
     assert!(matches!(wrong, Error::Model(_)), "{wrong}");
     assert!(
-        wrong
-            .to_string()
-            .contains("not that of an exported GradNet model"),
+        wrong.to_string().contains("not that of an exported model"),
         "{wrong}"
     );
     std::fs::write(dir.path().join("altered.onnx.sha256"), "0".repeat(64)).unwrap();
@@ -351,7 +349,7 @@ fn missing_runtime_is_one_clear_error_and_other_methods_still_work() {
     let failed = cmd("gradnet").assert().failure();
     let err = String::from_utf8_lossy(&failed.get_output().stderr).to_string();
     for part in [
-        "GradNet needs ONNX Runtime",
+        "GradNet and the combiner need ONNX Runtime",
         "1. explicit path",
         "2. ORT_DYLIB_PATH: not set",
         "3. next to the gdrecon library",

@@ -136,20 +136,48 @@ fn the_l1_prior_path_is_never_more_than_5_percent_behind_the_prior() {
     assert!(geomean < 0.97, "geometric mean ratio {geomean:.3}");
 }
 
+/// `auto` with a prior: L1 on the prior by default; with `use_combiner` the combiner where it
+/// can run (ONNX Runtime, and the sample has variance, albedo and normal), else L1 on the prior;
+/// each says why.
 #[test]
 fn auto_takes_the_prior_path_and_says_so() {
     let frame = io::read_bundle(root().join("examples/data/sample.exr"), Policy::Replace).unwrap();
+    let said = |report: &Report, part: &str| {
+        assert!(
+            report.notes.iter().any(|n| n.contains(part)),
+            "{part}: {:?}",
+            report.notes
+        );
+    };
+    let (l1, _) = run(&frame, &MethodConfig::PoissonL1(PoissonL1Config::prior()));
     let (auto, report) = run(&frame, &MethodConfig::default_for(Method::Auto));
     assert_eq!(report.method, "auto -> l1 (prior)");
-    assert!(
-        report
-            .notes
-            .iter()
-            .any(|n| n.starts_with("auto: Open Image Denoise computes the prior")),
-        "{:?}",
-        report.notes
-    );
-    let (l1, _) = run(&frame, &MethodConfig::PoissonL1(PoissonL1Config::prior()));
+    said(&report, "auto: Open Image Denoise computes the prior");
+    said(&report, "no combiner (use_combiner is false)");
+    assert_eq!(auto.as_slice(), l1.as_slice());
+
+    let mut config = MethodConfig::default_for(Method::Auto);
+    config.set_assignment("use_combiner=true").unwrap();
+    let (auto, report) = run(&frame, &config);
+    said(&report, "auto: Open Image Denoise computes the prior");
+    if cfg!(all(feature = "gradnet", feature = "embed-model")) {
+        assert_eq!(report.method, "auto -> combiner");
+        let (combined, _) = run(&frame, &MethodConfig::default_for(Method::Combiner));
+        assert_eq!(auto.as_slice(), combined.as_slice());
+    } else {
+        assert_eq!(report.method, "auto -> l1 (prior)");
+        assert_eq!(auto.as_slice(), l1.as_slice());
+    }
+    // Without a layer the combiner reads: L1 on the prior, saying which is missing.
+    let bare = frame
+        .into_builder()
+        .without(Layer::Variance)
+        .build(Policy::Replace)
+        .unwrap();
+    let (auto, report) = run(&bare, &config);
+    assert_eq!(report.method, "auto -> l1 (prior)");
+    said(&report, "no combiner (the frame lacks variance)");
+    let (l1, _) = run(&bare, &MethodConfig::PoissonL1(PoissonL1Config::prior()));
     assert_eq!(auto.as_slice(), l1.as_slice());
 }
 

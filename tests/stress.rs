@@ -4,12 +4,15 @@
 //! at most `1 / alpha^2`, and `|D^T g| <= 4 max|g|`), checked for L1 and the filter too;
 //! GradNet, which has no such operator, is held to `max(I_b) + (W + H) max|g|` (what any image
 //! with the frame's gradients reaches along a path from its brightest base pixel), to which it
-//! clamps.
+//! clamps. The combiner, a convex combination of the prior and two L1 solves on it, is held to
+//! the L2 bound; these frames lack the layers it reads, so it gets plain ones ([`frame_for`]).
 
 mod common;
 
 use common::*;
-use gdrecon::{recon::reconstruct, FrameBuilder, Image, Layer, Method, MethodConfig, Policy};
+use gdrecon::{
+    recon::reconstruct, Frame, FrameBuilder, Image, Layer, Method, MethodConfig, Policy,
+};
 
 struct Case {
     name: &'static str,
@@ -17,6 +20,29 @@ struct Case {
     dx: Image,
     dy: Image,
     spp: Option<f32>,
+}
+
+/// The frame `builder` makes for `method`: for the combiner with the layers it reads and these
+/// frames lack (a variance of 0.01, a grey albedo, normals facing the camera).
+fn frame_for(
+    method: Method,
+    builder: &FrameBuilder,
+    size: (usize, usize),
+) -> gdrecon::Result<Frame> {
+    let builder = builder.clone();
+    let builder = if method == Method::Combiner {
+        let (w, h) = size;
+        builder
+            .image(Layer::Variance, filled(w, h, |_| 0.01))
+            .image(Layer::Albedo, filled(w, h, |_| 0.5))
+            .image(
+                Layer::Normal,
+                filled(w, h, |(c, _, _)| (c == 2) as u8 as f32),
+            )
+    } else {
+        builder
+    };
+    builder.build(Policy::Replace)
 }
 
 fn filled(w: usize, h: usize, f: impl FnMut((usize, usize, usize)) -> f32) -> Image {
@@ -136,13 +162,12 @@ fn every_method_survives_every_case_within_the_bound() {
     let mut count = 0;
     for case in cases() {
         let (w, h) = case.color.size();
-        let frame = FrameBuilder::new()
+        let builder = FrameBuilder::new()
             .image(Layer::Color, case.color)
             .image(Layer::Dx, case.dx)
             .image(Layer::Dy, case.dy)
-            .spp(case.spp)
-            .build(Policy::Replace)
-            .unwrap();
+            .spp(case.spp);
+        let frame = builder.clone().build(Policy::Replace).unwrap();
         let maxabs = |img: &Image| {
             img.as_slice()
                 .iter()
@@ -178,7 +203,8 @@ fn every_method_survives_every_case_within_the_bound() {
                 count += 1;
                 continue;
             }
-            let (out, report) = reconstruct(&frame, &config)
+            let input = frame_for(method, &builder, (w, h)).unwrap();
+            let (out, report) = reconstruct(&input, &config)
                 .unwrap_or_else(|e| panic!("{} / {method}: {e}", case.name));
             assert!(
                 out.all_finite(),
@@ -222,14 +248,13 @@ fn replaced_values_are_reported() {
             1.0
         }
     });
-    let frame = FrameBuilder::new()
+    let builder = FrameBuilder::new()
         .image(Layer::Color, nan)
         .image(Layer::Dx, Image::zeros(3, 4, 4))
         .image(Layer::Dy, Image::zeros(3, 4, 4))
-        .spp(Some(4.0))
-        .build(Policy::Replace)
-        .unwrap();
+        .spp(Some(4.0));
     for method in Method::ALL.into_iter().filter(|m| m.is_built()) {
+        let frame = frame_for(method, &builder, (4, 4)).unwrap();
         let (_, report) = reconstruct(&frame, &MethodConfig::default_for(method)).unwrap();
         assert_eq!(report.sanitized.layer(Layer::Color).non_finite, 1);
         assert!(
@@ -282,7 +307,13 @@ fn implausible_gradients_are_replaced_and_reported() {
         frame.dx().at(0, 0, 0),
         exact_gradients(&color).0.at(0, 0, 0)
     );
+    let builder = FrameBuilder::new()
+        .image(Layer::Color, color.clone())
+        .image(Layer::Dx, dx.clone())
+        .image(Layer::Dy, dy.clone())
+        .spp(Some(4.0));
     for method in Method::ALL.into_iter().filter(|m| m.is_built()) {
+        let frame = frame_for(method, &builder, (w, h)).unwrap();
         let (out, report) = reconstruct(&frame, &MethodConfig::default_for(method)).unwrap();
         let top = out.as_slice().iter().fold(0.0f32, |m, v| m.max(v.abs()));
         assert!(out.all_finite() && top <= 1.5, "{method}: max |out| {top}");

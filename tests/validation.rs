@@ -158,10 +158,17 @@ fn output_never_holds_nan_or_inf_whatever_the_input() {
     dx.as_mut_slice()[8] = 1e30;
     let mut dy = Image::zeros(3, w, h);
     dy.as_mut_slice()[9] = -1e30;
+    // Variance, albedo and normal too (clean): the combiner reads them.
     let frame = base(w, h)
         .image(Layer::Color, color)
         .image(Layer::Dx, dx)
         .image(Layer::Dy, dy)
+        .image(Layer::Variance, Image::from_fn(3, w, h, |_| 0.01))
+        .image(Layer::Albedo, Image::from_fn(3, w, h, |_| 0.5))
+        .image(
+            Layer::Normal,
+            Image::from_fn(3, w, h, |(c, _, _)| (c == 2) as u8 as f32),
+        )
         .spp(Some(4.0))
         .build(Policy::Replace)
         .unwrap();

@@ -60,6 +60,15 @@ int main(int argc, char** argv) try {
         filter.setImage("color", color.data.data(), w, h, 3, px);
         filter.setImage("dx", dx.data.data(), w, h, 3, px);
         filter.setImage("dy", dy.data.data(), w, h, 3, px);
+        // The feature passes, when the bundle has them (the combiner needs all three).
+        std::vector<Rgba> features;
+        features.reserve(3);
+        for (const char* layer : {"variance", "albedo", "normal"}) {
+            const gdr::Frame::Layer planar = frame.layer(layer);
+            if (!planar || planar.channels != 3) continue;
+            features.push_back(to_rgba(frame, layer));
+            filter.setImage(layer, features.back().data.data(), w, h, 3, px);
+        }
         filter.setImage("output", color.data.data(), w, h, 3, px);
         filter.set("spp", frame.spp());
         filter.commit();

@@ -5,8 +5,9 @@
 #
 # Needs `bash onnx/setup.sh` (the venv, with the gdrecon_py package that renders).
 # Environment: GDRECON_DATA (default $HOME/.cache/gdrecon/data), GDRECON_VENV (see setup.sh),
-# VAL_REF_SPP / TEST_REF_SPP (4096), TRAIN_PERTURB (default 0:16), TRAIN_REF_SPP (default 0 =
-# noisy only), TRAIN_DIR (default $GDRECON_DATA/train2).
+# VAL_REF_SPP / TEST_REF_SPP (4096), TRAIN_PERTURB (default 0:12), TRAIN_REF_SPP (default 1024:
+# the combiner trains against references; 0 = noisy only), TRAIN_DIR (default
+# $GDRECON_DATA/train2).
 # Already rendered bundles are skipped (--skip-existing), so an interrupted run resumes; primal
 # layers missing from existing bundles are added (--add-primal) without touching their other
 # layers.
@@ -16,8 +17,8 @@
 #           render seed 20000 (tuning: methods, parameters, checkpoints are chosen on it)
 #   test  = base scenes of gaproom lamps cellar caustics fabric courtyard thin foliage,
 #           render seed 30000 (never used to choose anything)
-#   train = perturbed variants of atrium night shelf garden only (perturbation family seed 1,
-#           indices 0..15), render seed 40000, in $TRAIN_DIR.
+#   train = perturbed variants of atrium night shelf garden vitrine only (perturbation family
+#           seed 1, indices 0..11), render seed 40000, in $TRAIN_DIR.
 # The retired training set ($GDRECON_DATA/train: perturbations of the six original validation
 # families, perturbation seed 0, render seed 1000) trained the existing GradNet checkpoint and is
 # not used for new training.
@@ -48,6 +49,6 @@ if [ "$what" = train ] || [ "$what" = all ]; then
   dir="${TRAIN_DIR:-$root/train2}"
   echo "# training set -> $dir"
   time render --scene train --size 256x256 --spp 4,16,64 \
-      --perturb "${TRAIN_PERTURB:-0:16}" --perturb-seed 1 --ref-spp "${TRAIN_REF_SPP:-0}" \
+      --perturb "${TRAIN_PERTURB:-0:12}" --perturb-seed 1 --ref-spp "${TRAIN_REF_SPP:-1024}" \
       --seed 40000 --out "$dir" --skip-existing
 fi

@@ -89,10 +89,16 @@ impl gdr_context {
         }
     }
 
-    /// The GradNet paths set on the context: `(onnxruntime_path, model_path)`.
-    pub(crate) fn gradnet_paths(&self) -> (Option<String>, Option<String>) {
+    /// Points `config` at the paths set on the context: `onnxruntime_path` for any method that
+    /// runs a network, `model_path` for GradNet's model.
+    pub(crate) fn apply_paths(&self, config: &mut crate::recon::MethodConfig) {
         let s = self.settings();
-        (s.onnxruntime_path.clone(), s.model_path.clone())
+        if let Some(runtime) = config.runtime_mut() {
+            *runtime = s.onnxruntime_path.clone().map(Into::into);
+        }
+        if let Some(c) = config.gradnet_mut() {
+            c.model = s.model_path.clone().map(Into::into);
+        }
     }
 
     /// Sends `message` to the log callback if `level` is enabled, one call at a time.

@@ -227,7 +227,7 @@ fn lock(f: &gdr_filter) -> CResult<MutexGuard<'_, State>> {
     }
 }
 
-/// Create a filter running `method` (`"l2"`, `"l1"`, `"frgr"`, `"gradnet"`, `"prior"`, `"auto"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
+/// Create a filter running `method` (`"l2"`, `"l1"`, `"frgr"`, `"gradnet"`, `"prior"`, `"combiner"`, `"auto"`; see `gdr_method_name`) on a committed context into `*out`; NULL on failure.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_new(
     ctx: *mut gdr_context,
@@ -251,11 +251,7 @@ pub unsafe extern "C" fn gdr_filter_new(
             }
         };
         let mut config = MethodConfig::default_for(method);
-        if let Some(c) = config.gradnet_mut() {
-            let (runtime, model) = context.gradnet_paths();
-            c.runtime = runtime.map(Into::into);
-            c.model = model.map(Into::into);
-        }
+        context.apply_paths(&mut config);
         let filter = gdr_filter {
             context,
             pool,
@@ -315,11 +311,7 @@ pub unsafe extern "C" fn gdr_filter_set_preset(
 ) -> gdr_error {
     with_filter("gdr_filter_set_preset", filter, |f, st| {
         let mut config = MethodConfig::preset(st.config.method(), c_str(name, "name")?)?;
-        if let Some(c) = config.gradnet_mut() {
-            let (runtime, model) = f.context.gradnet_paths();
-            c.runtime = runtime.map(Into::into);
-            c.model = model.map(Into::into);
-        }
+        f.context.apply_paths(&mut config);
         st.config = config;
         st.dirty = true;
         Ok(())

@@ -1,10 +1,14 @@
 //! `auto`: picks a method per frame from what the frame carries, and says why.
 //!
 //! The rule, from the validation set (`docs/benchmarks.md`):
-//! 0. **a prior → `l1` on the prior** (preset `prior`), when the frame has a `prior` layer or
-//!    Open Image Denoise can be loaded: on the validation split it is 0.80-0.88x OIDN alone
-//!    (geometric mean per spp) and 2-4x better than every method without a prior. Why OIDN
-//!    could not be loaded is part of the note when it falls through to the rules below.
+//! 0. **a prior → `l1` on the prior** (preset `prior`), or **the combiner** with `use_combiner`
+//!    (off by default), when the frame has a `prior` layer or Open Image Denoise can be loaded.
+//!    L1 on the prior is 0.80-0.88x OIDN alone on the validation split (geometric mean per
+//!    spp), 2-4x better than every method without a prior. The combiner (which needs ONNX
+//!    Runtime and the frame's variance, albedo and normal) is 0.68-0.79x there and 0.52-0.67x
+//!    on test, but loses to the prior by 7 % on the validation `glass` frames (4 and 64 spp),
+//!    so it is not the default yet (`docs/benchmarks.md`, "Sixteenth session: the combiner").
+//!    Why the combiner or OIDN could not run is part of the note when it falls through.
 //! 1. **spp known → `frgr`** (RDFC guide). It has the lowest geometric-mean relMSE at 4 and
 //!    16 spp and is within 6 % of the best (the same method with an L1 guide) at 64 spp, and it
 //!    is the only method that is never far off on any scene (caustics included). A missing
@@ -23,7 +27,8 @@
 
 use super::param::{Param, ParamInfo, Params, Settings, Value};
 use super::{
-    FrgrConfig, GradNetConfig, Method, MethodConfig, PoissonL1Config, Reconstructor, Register,
+    CombinerConfig, FrgrConfig, GradNetConfig, Method, MethodConfig, PoissonL1Config,
+    Reconstructor, Register,
 };
 use crate::context::Context;
 use crate::error::{Error, Result};
@@ -42,10 +47,16 @@ pub struct AutoConfig {
     pub gradnet: GradNetConfig,
     /// The fallback.
     pub l1: PoissonL1Config,
-    /// Used whenever a prior is given or can be computed ([`PoissonL1Config::prior`]).
+    /// Used whenever a prior is given or can be computed ([`PoissonL1Config::prior`]), when
+    /// the combiner cannot run.
     pub prior: PoissonL1Config,
+    /// Used whenever a prior is given or can be computed, ONNX Runtime loads and the frame
+    /// has variance, albedo and normal (its runtime path is `gradnet`'s).
+    pub combiner: CombinerConfig,
     /// Take the prior path when a prior is given or Open Image Denoise loads (rule 0).
     pub use_prior: bool,
+    /// On the prior path, run the combiner when it can run.
+    pub use_combiner: bool,
     /// Fall back to the next rule when the preferred path cannot run here (the default);
     /// false: fail instead, so that one frame gives one image on every machine.
     pub fallback: bool,
@@ -55,6 +66,7 @@ pub struct AutoConfig {
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct Rules {
     use_prior: bool,
+    use_combiner: bool,
     fallback: bool,
 }
 
@@ -62,6 +74,7 @@ impl Default for Rules {
     fn default() -> Self {
         Rules {
             use_prior: true,
+            use_combiner: false,
             fallback: true,
         }
     }
@@ -75,6 +88,14 @@ impl Params for Rules {
              Image Denoise loads; false: never load OIDN, pick among frgr, gradnet and l1",
             |c| c.use_prior,
             |c, v| c.use_prior = v,
+        ),
+        Param::bool(
+            "use_combiner",
+            "On the prior path, run the combiner (learned weights over the prior and L1 on it) \
+             when ONNX Runtime loads and the frame has variance, albedo and normal; false (the \
+             default until it loses to the prior on no validation frame): L1 on the prior",
+            |c| c.use_combiner,
+            |c, v| c.use_combiner = v,
         ),
         Param::bool(
             "fallback",
@@ -94,13 +115,30 @@ impl Default for AutoConfig {
             gradnet: GradNetConfig::default(),
             l1: PoissonL1Config::default(),
             prior: PoissonL1Config::prior(),
+            combiner: CombinerConfig::default(),
             use_prior: Rules::default().use_prior,
+            use_combiner: Rules::default().use_combiner,
             fallback: Rules::default().fallback,
         }
     }
 }
 
 impl AutoConfig {
+    fn rules(&self) -> Rules {
+        Rules {
+            use_prior: self.use_prior,
+            use_combiner: self.use_combiner,
+            fallback: self.fallback,
+        }
+    }
+
+    /// The combiner's settings with `gradnet`'s runtime path.
+    fn combiner(&self) -> CombinerConfig {
+        let mut combiner = self.combiner.clone();
+        combiner.runtime.clone_from(&self.gradnet.runtime);
+        combiner
+    }
+
     /// The method `frame` gets, and why (before checking that GradNet can run).
     pub fn choose(&self, frame: &Frame) -> (MethodConfig, String) {
         match frame.spp() {
@@ -149,6 +187,7 @@ impl Settings for AutoConfig {
             }
         }
         all.extend(prior);
+        all.extend(CombinerConfig::infos(&format!("{prefix}combiner.")));
         all.extend(FrgrConfig::infos(&format!("{prefix}frgr.")));
         all.extend(GradNetConfig::infos(&format!("{prefix}gradnet.")));
         all.extend(PoissonL1Config::infos(&format!("{prefix}l1.")));
@@ -157,14 +196,11 @@ impl Settings for AutoConfig {
 
     fn read(&self, name: &str) -> Option<Value> {
         if !name.contains('.') {
-            return Rules {
-                use_prior: self.use_prior,
-                fallback: self.fallback,
-            }
-            .read(name);
+            return self.rules().read(name);
         }
         match name.split_once('.')? {
             ("prior", rest) => self.prior.read(rest),
+            ("combiner", rest) => self.combiner.read(rest),
             ("frgr", rest) => self.frgr.read(rest),
             ("gradnet", rest) => self.gradnet.read(rest),
             ("l1", rest) => self.l1.read(rest),
@@ -174,16 +210,15 @@ impl Settings for AutoConfig {
 
     fn write(&mut self, name: &str, value: Value) -> bool {
         if !name.contains('.') {
-            let mut rules = Rules {
-                use_prior: self.use_prior,
-                fallback: self.fallback,
-            };
+            let mut rules = self.rules();
             let written = rules.write(name, value);
-            (self.use_prior, self.fallback) = (rules.use_prior, rules.fallback);
+            (self.use_prior, self.use_combiner, self.fallback) =
+                (rules.use_prior, rules.use_combiner, rules.fallback);
             return written;
         }
         match name.split_once('.') {
             Some(("prior", rest)) => self.prior.write(rest, value),
+            Some(("combiner", rest)) => self.combiner.write(rest, value),
             Some(("frgr", rest)) => self.frgr.write(rest, value),
             Some(("gradnet", rest)) => self.gradnet.write(rest, value),
             Some(("l1", rest)) => self.l1.write(rest, value),
@@ -214,6 +249,10 @@ impl Register for AutoConfig {
         Some(&mut self.gradnet)
     }
 
+    fn runtime_mut(&mut self) -> Option<&mut Option<std::path::PathBuf>> {
+        Some(&mut self.gradnet.runtime)
+    }
+
     /// The largest of the paths it may plan (a frame's choice is made at execute). Plans made
     /// for earlier frames are kept, so a sequence whose frames take different paths can hold
     /// more than this: the estimate covers one path, as one frame takes.
@@ -223,6 +262,7 @@ impl Register for AutoConfig {
             MethodConfig::GradNet(self.gradnet.clone()).memory_estimate(width, height),
             MethodConfig::PoissonL1(self.l1).memory_estimate(width, height),
             MethodConfig::PoissonL1(self.prior).memory_estimate(width, height),
+            MethodConfig::Combiner(self.combiner()).memory_estimate(width, height),
         ]
         .into_iter()
         .max()
@@ -240,6 +280,7 @@ pub(crate) struct Auto {
     /// could not be loaded is remembered too.
     plans: Vec<(&'static str, Box<dyn Reconstructor>)>,
     gradnet_error: Option<String>,
+    combiner_error: Option<String>,
     oidn_error: Option<String>,
 }
 
@@ -262,6 +303,7 @@ impl Auto {
             height,
             plans: Vec::new(),
             gradnet_error: None,
+            combiner_error: None,
             oidn_error: None,
         };
         if auto.config.use_prior {
@@ -315,6 +357,35 @@ impl Auto {
     }
 }
 
+impl Auto {
+    /// Why this frame cannot take the combiner (`None`: it can): switched off, a layer it
+    /// needs is missing, or it could not be planned (ONNX Runtime or the model; tried once, the
+    /// failure kept).
+    fn combiner_blocked(&mut self, frame: &Frame) -> Option<String> {
+        if !self.config.use_combiner {
+            return Some("use_combiner is false".into());
+        }
+        let missing: Vec<&str> = [
+            ("variance", frame.variance().is_none()),
+            ("albedo", frame.albedo().is_none()),
+            ("normal", frame.normal().is_none()),
+        ]
+        .into_iter()
+        .filter_map(|(name, absent)| absent.then_some(name))
+        .collect();
+        if !missing.is_empty() {
+            return Some(format!("the frame lacks {}", missing.join(", ")));
+        }
+        if self.combiner_error.is_none() {
+            let choice = MethodConfig::Combiner(self.config.combiner());
+            if let Err(e) = self.plan("combiner", &choice) {
+                self.combiner_error = Some(e.to_string().lines().next().unwrap_or_default().into());
+            }
+        }
+        self.combiner_error.clone()
+    }
+}
+
 impl Reconstructor for Auto {
     fn method(&self) -> Method {
         Method::Auto
@@ -334,10 +405,28 @@ impl Reconstructor for Auto {
         };
         let no_prior = match available {
             Ok(why) => {
-                report.note(format!(
-                    "auto: {why}: l1 on the prior (0.80-0.88x Open Image Denoise alone on the \
-                     validation split)"
-                ));
+                match self.combiner_blocked(frame) {
+                    None => {
+                        report.note(format!(
+                            "auto: {why}: combiner (0.68-0.79x Open Image Denoise alone on \
+                             the validation split)"
+                        ));
+                        report.method = "auto -> combiner".into();
+                        let choice = MethodConfig::Combiner(self.config.combiner());
+                        let plan = self.plan("combiner", &choice)?;
+                        progress.check()?;
+                        return plan.reconstruct_into(frame, out, report, progress);
+                    }
+                    Some(blocked) if !self.config.fallback && self.combiner_error.is_some() => {
+                        return Err(Error::Unsupported(format!(
+                            "auto: the combiner cannot run here ({blocked}), and fallback is false"
+                        )));
+                    }
+                    Some(blocked) => report.note(format!(
+                        "auto: {why}; no combiner ({blocked}): l1 on the prior (0.80-0.88x Open \
+                         Image Denoise alone on the validation split)"
+                    )),
+                }
                 report.method = "auto -> l1 (prior)".into();
                 let choice = MethodConfig::PoissonL1(self.config.prior);
                 let plan = self.plan("prior", &choice)?;

@@ -18,6 +18,7 @@
 
 pub mod auto;
 mod band;
+pub mod combiner;
 pub mod converged;
 #[cfg(feature = "testing")]
 pub mod copy;
@@ -32,11 +33,13 @@ pub mod poisson_l2;
 pub mod prior;
 
 use std::fmt;
+use std::path::PathBuf;
 use std::str::FromStr;
 
 use rayon::prelude::*;
 
 pub use auto::AutoConfig;
+pub use combiner::CombinerConfig;
 #[cfg(feature = "testing")]
 pub use copy::CopyConfig;
 pub use frgr::{FrgrConfig, FrgrGuide};
@@ -95,8 +98,13 @@ pub(crate) trait Register: Settings + Clone {
     ) -> Result<Box<dyn Reconstructor>>;
 
     /// The GradNet settings this configuration runs with, if it can run GradNet: where the
-    /// runtime library and model paths go.
+    /// model path goes.
     fn gradnet_mut(&mut self) -> Option<&mut GradNetConfig> {
+        None
+    }
+
+    /// The ONNX Runtime library path, if this configuration runs a network.
+    fn runtime_mut(&mut self) -> Option<&mut Option<PathBuf>> {
         None
     }
 
@@ -255,6 +263,8 @@ registry! {
         "GradNet (Guo et al. 2019) through ONNX Runtime, loaded at run time";
     Prior(PriorConfig) = "prior",
         "The prior alone: the frame's 'prior' layer, or Open Image Denoise on the base image";
+    Combiner(CombinerConfig) = "combiner",
+        "Learned per-pixel weights over the prior, L1 on the prior (two weights) and the base image, through ONNX Runtime";
     Auto(AutoConfig) = "auto",
         "Picks frgr, gradnet or l1 per frame from its spp and layers, and says why";
     #[cfg(feature = "testing")]
@@ -271,6 +281,7 @@ trait RegisterDyn {
         height: usize,
     ) -> Result<Box<dyn Reconstructor>>;
     fn gradnet_dyn(&mut self) -> Option<&mut GradNetConfig>;
+    fn runtime_dyn(&mut self) -> Option<&mut Option<PathBuf>>;
     fn memory_dyn(&self, width: usize, height: usize) -> u64;
 }
 
@@ -288,6 +299,10 @@ impl<C: Register> RegisterDyn for C {
 
     fn gradnet_dyn(&mut self) -> Option<&mut GradNetConfig> {
         self.gradnet_mut()
+    }
+
+    fn runtime_dyn(&mut self) -> Option<&mut Option<PathBuf>> {
+        self.runtime_mut()
     }
 
     fn memory_dyn(&self, width: usize, height: usize) -> u64 {
@@ -370,6 +385,13 @@ impl MethodConfig {
     /// runtime library and model paths; `None` for methods that never run GradNet.
     pub fn gradnet_mut(&mut self) -> Option<&mut GradNetConfig> {
         self.register().gradnet_dyn()
+    }
+
+    /// The ONNX Runtime library path of a configuration that runs a network (`gradnet`,
+    /// `combiner`, `auto`): what the CLI's `--onnxruntime` and the C context's
+    /// `"onnxruntime_path"` set; `None` for methods that run none.
+    pub fn runtime_mut(&mut self) -> Option<&mut Option<PathBuf>> {
+        self.register().runtime_dyn()
     }
 
     /// An upper estimate of the bytes a plan of this configuration for `width` x `height`

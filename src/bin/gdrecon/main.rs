@@ -92,8 +92,8 @@ enum Command {
 /// `reconstruct` and `bench`).
 #[derive(Args, Clone, Debug)]
 pub(crate) struct RuntimeArgs {
-    /// gradnet: ONNX Runtime library to load first (then ORT_DYLIB_PATH, a library next to
-    /// gdrecon, the project's Python environment).
+    /// gradnet, combiner: ONNX Runtime library to load first (then ORT_DYLIB_PATH, a library
+    /// next to gdrecon, the project's Python environment).
     #[arg(long)]
     onnxruntime: Option<PathBuf>,
     /// gradnet: model file instead of the embedded models (checked against its .sha256).
@@ -107,10 +107,12 @@ pub(crate) struct RuntimeArgs {
 }
 
 impl RuntimeArgs {
-    /// Points the configuration's GradNet settings (if it has any) at the runtime and model.
+    /// Points the configuration at the runtime (if it runs a network) and GradNet's model.
     pub(crate) fn apply(&self, config: &mut MethodConfig) {
+        if let Some(runtime) = config.runtime_mut() {
+            *runtime = self.onnxruntime.clone();
+        }
         if let Some(c) = config.gradnet_mut() {
-            c.runtime = self.onnxruntime.clone();
             c.model = self.model.clone();
         }
     }
@@ -128,10 +130,10 @@ impl RuntimeArgs {
 /// Method selection and settings of `reconstruct`.
 #[derive(Args, Clone, Debug)]
 pub(crate) struct MethodArgs {
-    /// Reconstruction method: l2, l1, frgr, gradnet, prior or auto (`gdrecon params` lists
-    /// each one; frgr needs spp, from the file or --spp; gradnet needs ONNX Runtime; prior,
-    /// and the prior paths such as `--preset prior` for l1, need Open Image Denoise or the
-    /// frame's 'prior' layer).
+    /// Reconstruction method: l2, l1, frgr, gradnet, prior, combiner or auto (`gdrecon params`
+    /// lists each one; frgr needs spp, from the file or --spp; gradnet needs ONNX Runtime;
+    /// prior, and the prior paths such as `--preset prior` for l1, need Open Image Denoise or
+    /// the frame's 'prior' layer; combiner needs both, and variance, albedo and normal).
     #[arg(long, short, default_value = "l2")]
     method: String,
     /// Start from one of the method's presets (`gdrecon params METHOD` lists them), e.g.

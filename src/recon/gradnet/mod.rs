@@ -21,11 +21,11 @@ pub(crate) mod prep;
 pub(crate) mod tiles;
 
 #[cfg(feature = "gradnet")]
-mod net;
+pub(crate) mod net;
 #[cfg(test)]
 mod parity;
 #[cfg(feature = "gradnet")]
-mod runtime;
+pub(crate) mod runtime;
 
 use std::path::PathBuf;
 
@@ -216,6 +216,10 @@ impl Register for GradNetConfig {
         Some(self)
     }
 
+    fn runtime_mut(&mut self) -> Option<&mut Option<PathBuf>> {
+        Some(&mut self.runtime)
+    }
+
     /// Peak RSS of `gdrecon reconstruct -m gradnet` (ONNX Runtime 1.2x, CPU, the demo bundle)
     /// minus that of `gdrecon info` on the same bundle (the process, and the frame as read):
     ///
@@ -277,7 +281,7 @@ mod enabled {
         grad: Array4<f32>,
         /// Loaded networks, by [`ModelVariant::ALL`] index: the configured file (slot 0), or
         /// the embedded models.
-        nets: [Option<SharedNet>; 3],
+        nets: [Option<SharedNet>; ModelVariant::ALL.len()],
         runtime_path: String,
     }
 
@@ -306,6 +310,7 @@ mod enabled {
                 map.y.padded_len(),
                 config.whole_pixels,
                 config.tile_size,
+                tiles::GRADNET,
             )?;
             let (th, tw) = (tiles[0].y.size, tiles[0].x.size);
             let runtime = runtime::runtime(config.runtime.as_deref())?;
@@ -314,7 +319,7 @@ mod enabled {
                 tiles,
                 data: Array4::zeros((1, 8, th, tw)),
                 grad: Array4::zeros((1, 2, th, tw)),
-                nets: [None, None, None],
+                nets: Default::default(),
                 runtime_path: runtime.path.display().to_string(),
                 context: context.clone(),
                 config,

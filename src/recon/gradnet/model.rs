@@ -1,12 +1,12 @@
-//! Where GradNet's weights come from, and proof that they are the ones exported.
+//! Where the networks' weights come from, and proof that they are the ones exported.
 //!
-//! The exported models (`onnx/gradnet.onnx` with features, `onnx/gradnet_nofeat.onnx`
-//! without, and `onnx/gradnet_int8.onnx`, the feature model quantised to int8 by
-//! `onnx/gdrecon_py/quantize.py`) are embedded in the library by the `embed-model` feature (on
-//! by default), or read from a file. Either way the SHA-256 of the bytes is checked before ONNX
-//! Runtime sees them: against the `.sha256` file `export.py` / `quantize.py` write beside each
-//! model (recorded at export), or, for a file without one, against the hashes of the models
-//! this build knows.
+//! The exported models (GradNet's `onnx/gradnet.onnx` with features,
+//! `onnx/gradnet_nofeat.onnx` without, and `onnx/gradnet_int8.onnx`, the feature model
+//! quantised to int8 by `onnx/gdrecon_py/quantize.py`; the combiner's `onnx/combiner.onnx`) are
+//! embedded in the library by the `embed-model` feature (on by default), or read from a file.
+//! Either way the SHA-256 of the bytes is checked before ONNX Runtime sees them: against the
+//! `.sha256` file `export.py` / `quantize.py` / `combiner.py` write beside each model (recorded
+//! at export), or, for a file without one, against the hashes of the models this build knows.
 
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
@@ -15,8 +15,8 @@ use sha2::{Digest, Sha256};
 
 use crate::error::{Error, Result};
 
-/// Which exported model: with the feature branch (8 data channels) or without (1), and in
-/// which precision.
+/// Which exported model: GradNet with the feature branch (8 data channels) or without (1),
+/// and in which precision; or the combiner's network.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 #[non_exhaustive]
 pub enum ModelVariant {
@@ -29,14 +29,17 @@ pub enum ModelVariant {
     /// convolution kept in fp32), calibrated on the training split (`docs/gradnet.md`,
     /// "Reduced precision").
     FullInt8,
+    /// `combiner.onnx`: the combiner's network (`onnx/gdrecon_py/combiner.py`), not a GradNet.
+    Combiner,
 }
 
 impl ModelVariant {
     /// Every model this build knows.
-    pub const ALL: [ModelVariant; 3] = [
+    pub const ALL: [ModelVariant; 4] = [
         ModelVariant::Full,
         ModelVariant::NoFeatures,
         ModelVariant::FullInt8,
+        ModelVariant::Combiner,
     ];
 }
 
@@ -47,14 +50,16 @@ impl ModelVariant {
             ModelVariant::Full => "gradnet.onnx",
             ModelVariant::NoFeatures => "gradnet_nofeat.onnx",
             ModelVariant::FullInt8 => "gradnet_int8.onnx",
+            ModelVariant::Combiner => "combiner.onnx",
         }
     }
 
-    /// Channels of the data branch's input.
+    /// Channels of the first input: GradNet's data branch, the combiner's stacked layers.
     pub fn data_channels(self) -> usize {
         match self {
             ModelVariant::Full | ModelVariant::FullInt8 => 8,
             ModelVariant::NoFeatures => 1,
+            ModelVariant::Combiner => 27,
         }
     }
 
@@ -64,6 +69,7 @@ impl ModelVariant {
             ModelVariant::Full => include_str!("../../../onnx/gradnet.onnx.sha256"),
             ModelVariant::NoFeatures => include_str!("../../../onnx/gradnet_nofeat.onnx.sha256"),
             ModelVariant::FullInt8 => include_str!("../../../onnx/gradnet_int8.onnx.sha256"),
+            ModelVariant::Combiner => include_str!("../../../onnx/combiner.onnx.sha256"),
         };
         line.split_whitespace().next().unwrap_or_default()
     }
@@ -104,6 +110,7 @@ pub(crate) fn embedded(variant: ModelVariant) -> Result<ModelBytes> {
             ModelVariant::Full => include_bytes!("../../../onnx/gradnet.onnx"),
             ModelVariant::NoFeatures => include_bytes!("../../../onnx/gradnet_nofeat.onnx"),
             ModelVariant::FullInt8 => include_bytes!("../../../onnx/gradnet_int8.onnx"),
+            ModelVariant::Combiner => include_bytes!("../../../onnx/combiner.onnx"),
         };
         let origin = format!("embedded {}", variant.file_name());
         checked(Cow::Borrowed(bytes), variant.recorded_sha256(), origin)
@@ -111,7 +118,7 @@ pub(crate) fn embedded(variant: ModelVariant) -> Result<ModelBytes> {
     #[cfg(not(feature = "embed-model"))]
     {
         Err(Error::Unsupported(format!(
-            "this build has no embedded GradNet model (cargo feature `embed-model` is off): \
+            "this build has no embedded models (cargo feature `embed-model` is off): \
              give the path of {} as the model",
             variant.file_name()
         )))
@@ -156,7 +163,7 @@ pub(crate) fn from_file(path: &Path) -> Result<ModelBytes> {
                     .map(|v| v.recorded_sha256())
                     .collect();
                 Err(Error::Model(format!(
-                    "{origin}: SHA-256 {actual} is not that of an exported GradNet model \
+                    "{origin}: SHA-256 {actual} is not that of an exported model \
                      (expected one of {}, or a {} file beside the model as \
                      onnx/gdrecon_py/export.py writes): the file is damaged or is another model",
                     known.join(", "),
@@ -229,7 +236,7 @@ mod tests {
         std::fs::write(&other, b"not a model").unwrap();
         let unknown = from_file(&other).unwrap_err().to_string();
         assert!(
-            unknown.contains("not that of an exported GradNet model"),
+            unknown.contains("not that of an exported model"),
             "{unknown}"
         );
         std::fs::write(sidecar_path(&other), "00  other.onnx\n").unwrap();

@@ -1,4 +1,5 @@
-//! One ONNX Runtime session running the GradNet graph.
+//! ONNX Runtime sessions: how one is built and run with a cancel ([`session`],
+//! [`cancellable`], shared with the combiner), and the one running the GradNet graph ([`Net`]).
 //!
 //! Settings, each for a reason measured here (see `docs/gradnet.md`): all graph optimisations
 //! (the layout level turns the convolutions into NCHWc kernels, faster than the extended
@@ -14,7 +15,7 @@ use std::time::Duration;
 use ndarray::{ArrayView2, ArrayView4};
 use ort::ep;
 use ort::session::builder::GraphOptimizationLevel;
-use ort::session::{RunOptions, Session};
+use ort::session::{RunOptions, Session, SessionOutputs};
 use ort::value::TensorRef;
 
 use super::model::ModelBytes;
@@ -48,6 +49,84 @@ fn runtime_error(
     move |e| Error::Runtime(format!("{what}: {e}"))
 }
 
+/// Builds a session for `model` with `threads` intra-op threads and the settings above.
+pub(crate) fn session(
+    env: &ort::environment::Environment,
+    model: &ModelBytes,
+    threads: usize,
+) -> Result<Session> {
+    let option = runtime_error("cannot configure the ONNX Runtime session");
+    Session::builder(env)
+        .map_err(|e| Error::Runtime(format!("cannot create an ONNX Runtime session: {e}")))?
+        .with_optimization_level(GraphOptimizationLevel::All)
+        .map_err(&option)?
+        .with_intra_threads(threads)
+        .map_err(&option)?
+        .with_inter_threads(1)
+        .map_err(&option)?
+        .with_intra_op_spinning(false)
+        .map_err(&option)?
+        .with_memory_pattern(true)
+        .map_err(&option)?
+        .with_execution_providers([ep::CPU::default().with_arena_allocator(true).build()])
+        .map_err(&option)?
+        .commit_from_memory(&model.bytes)
+        .map_err(|e| {
+            Error::Model(format!(
+                "{}: ONNX Runtime cannot load it: {e}",
+                model.origin
+            ))
+        })
+}
+
+/// Runs `run` (one inference, and whatever reads its outputs, which borrow the options) with
+/// run options that a cancel of `stop` terminates: a watcher thread polls the flag every
+/// [`POLL`], since one inference at 720p takes up to a second. A cancelled run returns
+/// `Cancelled`, whatever `run` returned.
+pub(crate) fn cancellable<T>(
+    stop: &Progress,
+    run: impl FnOnce(&RunOptions) -> Result<T>,
+) -> Result<T> {
+    let options = RunOptions::new()
+        .map_err(|e| Error::Runtime(format!("cannot make ONNX Runtime run options: {e}")))?;
+    let running = AtomicBool::new(true);
+    let result = std::thread::scope(|s| {
+        if stop.can_stop() {
+            s.spawn(|| {
+                while running.load(Ordering::Acquire) {
+                    if stop.stopped() {
+                        let _ = options.terminate();
+                        return;
+                    }
+                    std::thread::sleep(POLL);
+                }
+            });
+        }
+        let result = run(&options);
+        running.store(false, Ordering::Release);
+        result
+    });
+    stop.check()?;
+    result
+}
+
+/// The graph's `output` tensor in the shape `shape` makes of its dimensions (`(H, W)` for one
+/// GradNet item), or an error naming what is wrong (`what`: whose inference it was).
+pub(crate) fn output<'a, E: ndarray::ShapeArg>(
+    outputs: &'a SessionOutputs<'_>,
+    what: &str,
+    shape: impl FnOnce(&[usize]) -> E,
+) -> Result<ndarray::ArrayView<'a, f32, E::Dim>> {
+    let out = outputs
+        .get("output")
+        .ok_or_else(|| Error::Runtime(format!("{what}: the graph returned no `output`")))?
+        .try_extract_array::<f32>()
+        .map_err(|e| Error::Runtime(format!("{what} failed: {e}")))?;
+    let dims = out.shape().to_vec();
+    out.into_shape_with_order(shape(&dims))
+        .map_err(|e| Error::Runtime(format!("{what}: unexpected output shape {dims:?}: {e}")))
+}
+
 impl Net {
     /// Builds a session for `model` with `threads` intra-op threads.
     pub fn new(
@@ -55,28 +134,7 @@ impl Net {
         model: &ModelBytes,
         threads: usize,
     ) -> Result<Net> {
-        let option = runtime_error("cannot configure the ONNX Runtime session");
-        let session = Session::builder(env)
-            .map_err(|e| Error::Runtime(format!("cannot create an ONNX Runtime session: {e}")))?
-            .with_optimization_level(GraphOptimizationLevel::All)
-            .map_err(&option)?
-            .with_intra_threads(threads)
-            .map_err(&option)?
-            .with_inter_threads(1)
-            .map_err(&option)?
-            .with_intra_op_spinning(false)
-            .map_err(&option)?
-            .with_memory_pattern(true)
-            .map_err(&option)?
-            .with_execution_providers([ep::CPU::default().with_arena_allocator(true).build()])
-            .map_err(&option)?
-            .commit_from_memory(&model.bytes)
-            .map_err(|e| {
-                Error::Model(format!(
-                    "{}: ONNX Runtime cannot load it: {e}",
-                    model.origin
-                ))
-            })?;
+        let session = session(env, model, threads)?;
         let input = |name: &str| {
             session
                 .inputs()
@@ -118,9 +176,8 @@ impl Net {
         })
     }
 
-    /// Runs the network on one batch item and hands its `H x W` output to `consume`. A cancel
-    /// of `stop` during the run terminates it (ONNX Runtime's run options; a watcher thread
-    /// polls the flag every [`POLL`]): one inference at 720p takes a second or more.
+    /// Runs the network on one batch item and hands its `H x W` output to `consume`; a
+    /// cancel of `stop` during the run terminates it ([`cancellable`]).
     pub fn run(
         &mut self,
         data: ArrayView4<'_, f32>,
@@ -131,38 +188,13 @@ impl Net {
         let fail = |e: ort::Error| Error::Runtime(format!("GradNet inference failed: {e}"));
         let data = TensorRef::from_array_view(data).map_err(fail)?;
         let grad = TensorRef::from_array_view(grad).map_err(fail)?;
-        let options = RunOptions::new().map_err(fail)?;
-        let running = AtomicBool::new(true);
         let session = &mut self.session;
-        let outputs = std::thread::scope(|s| {
-            if stop.can_stop() {
-                s.spawn(|| {
-                    while running.load(Ordering::Acquire) {
-                        if stop.stopped() {
-                            let _ = options.terminate();
-                            return;
-                        }
-                        std::thread::sleep(POLL);
-                    }
-                });
-            }
-            let outputs =
-                session.run_with_options(ort::inputs!["data" => data, "grad" => grad], &options);
-            running.store(false, Ordering::Release);
-            outputs
-        });
-        stop.check()?;
-        let outputs = outputs.map_err(fail)?;
-        let out = outputs
-            .get("output")
-            .ok_or_else(|| Error::Runtime("the graph returned no `output`".into()))?
-            .try_extract_array::<f32>()
-            .map_err(fail)?;
-        let shape = out.shape().to_vec();
-        let out = out
-            .into_shape_with_order((shape[2], shape[3]))
-            .map_err(|e| Error::Runtime(format!("unexpected output shape {shape:?}: {e}")))?;
-        consume(out);
-        Ok(())
+        cancellable(stop, |options| {
+            let outputs = session
+                .run_with_options(ort::inputs!["data" => data, "grad" => grad], options)
+                .map_err(fail)?;
+            consume(output(&outputs, "GradNet inference", |d| (d[2], d[3]))?);
+            Ok(())
+        })
     }
 }

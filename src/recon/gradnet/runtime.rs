@@ -1,6 +1,7 @@
 //! Finding ONNX Runtime and holding the process's one `ort` environment.
 //!
-//! gdrecon links nothing of ONNX Runtime: the library is opened on the first GradNet plan, so a
+//! gdrecon links nothing of ONNX Runtime: the library is opened on the first GradNet or
+//! combiner plan, so a
 //! renderer that only uses the other methods never touches it. Candidates, in order
 //! ([`crate::dylib`]'s search; the error lists each with why it failed):
 //! 1. an explicit path (the method's `runtime` setting, the CLI's `--onnxruntime`, the C
@@ -47,11 +48,11 @@ pub(crate) fn runtime(explicit: Option<&Path>) -> Result<&'static Runtime> {
         Err(tried) => tried,
     };
     Err(Error::Unsupported(format!(
-        "GradNet needs ONNX Runtime 1.31 (libonnxruntime.so.1.31.x) and none could be loaded. \
+        "GradNet and the combiner need ONNX Runtime 1.31 (libonnxruntime.so.1.31.x) and none could be loaded. \
          Tried, in order:\n{}\nInstall it with `bash onnx/setup.sh` (the project's Python \
          environment, onnxruntime 1.31.1), or `pip install onnxruntime==1.31.1` and point \
          ORT_DYLIB_PATH at its onnxruntime/capi/libonnxruntime.so.1.31.1. The other methods \
-         (l2, l1, frgr) do not need it.",
+         (l2, l1, frgr, prior) do not need it.",
         numbered(&tried)
     )))
 }

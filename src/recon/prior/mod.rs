@@ -122,20 +122,24 @@ impl Reconstructor for OnPrior {
             Cow::Borrowed(given) => given.try_clone()?,
             Cow::Owned(computed) => computed,
         };
-        // Only what screened Poisson reads: the prior as its colour and the gradients (copying
-        // the other layers cost 60 MB and a sanitising pass at 720p). All are already clean
-        // (a given prior is sanitised like colour, OIDN's output is confined), so building
-        // replaces nothing.
-        let anchored = FrameBuilder::new()
-            .image(Layer::Color, prior)
-            .image(Layer::Dx, frame.dx().try_clone()?)
-            .image(Layer::Dy, frame.dy().try_clone()?)
-            .spp(frame.spp())
-            .build(Policy::Replace)?;
+        let anchored = anchored(prior, frame)?;
         report.note("data term: the prior");
         self.inner
             .reconstruct_into(&anchored, out, report, progress)
     }
+}
+
+/// The frame a screened Poisson solve on the prior reads: `prior` as its colour, and `frame`'s
+/// gradients and spp. Only what the solve reads (copying the other layers cost 60 MB and a
+/// sanitising pass at 720p). All are already clean (a given prior is sanitised like colour,
+/// OIDN's output is confined), so building replaces nothing.
+pub(crate) fn anchored(prior: Image, frame: &Frame) -> Result<Frame> {
+    FrameBuilder::new()
+        .image(Layer::Color, prior)
+        .image(Layer::Dx, frame.dx().try_clone()?)
+        .image(Layer::Dy, frame.dy().try_clone()?)
+        .spp(frame.spp())
+        .build(Policy::Replace)
 }
 
 /// A plan's source of priors for one frame size.

@@ -1,0 +1,86 @@
+"""The combiner's Python side: the weighted sum is a convex combination of the candidates, the
+reference `combine` pads and crops as the Rust side does, an export matches torch through
+onnxruntime, and the checkpoint rule. (Resuming a training run bit for bit was checked by hand:
+`--stop-at 20` then a rerun gives the uninterrupted run's losses to the last digit.)"""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from gdrecon_py import combiner as cb
+
+
+def random_input(n=2, h=16, w=20, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, cb.IN_CHANNELS, h, w, generator=g) * 3
+    x[:, 21:27] -= 1.5  # gradients are signed
+    return x
+
+
+@pytest.mark.parametrize("mixed", [3, 4])
+def test_output_is_a_convex_combination_of_the_mixed_candidates(mixed):
+    torch.manual_seed(1)
+    m = cb.Combiner(mixed=mixed).eval()
+    x = random_input()
+    with torch.no_grad():
+        w = m.weights(x)
+        out = m(x)
+    assert w.shape[1] == mixed
+    assert torch.allclose(w.sum(1), torch.ones_like(w[:, 0]), atol=1e-6)
+    cands = x[:, : 3 * mixed].reshape(2, mixed, 3, 16, 20)
+    assert (out >= cands.min(1).values - 1e-5).all() and (out <= cands.max(1).values + 1e-5).all()
+
+
+def test_taps_weight_each_candidate_at_its_neighbours():
+    torch.manual_seed(2)
+    m = cb.Combiner(taps=3, mixed=3).eval()
+    x = random_input(h=12, w=8)
+    with torch.no_grad():
+        w, out = m.weights(x), m(x)
+    p = torch.nn.functional.pad(x[:, :9], (1, 1, 1, 1), mode="replicate")
+    want = 0
+    for k in range(3):
+        for t in range(9):
+            dy, dx = divmod(t, 3)
+            want = want + w[:, k * 9 + t:k * 9 + t + 1] * p[:, 3 * k:3 * k + 3, dy:dy + 12, dx:dx + 8]
+    assert torch.allclose(out, want, atol=1e-6)
+
+
+def test_combine_repeats_the_last_row_and_column_and_crops():
+    seen = {}
+
+    def run(a):
+        seen["shape"] = a.shape
+        seen["input"] = a
+        return a[:, :3] * 2
+
+    x = np.random.default_rng(0).random((cb.IN_CHANNELS, 9, 6), dtype=np.float32)
+    out = cb.combine(x, run)
+    assert seen["shape"] == (1, cb.IN_CHANNELS, 12, 8)
+    assert np.array_equal(seen["input"][0, :, 11, :6], x[:, 8, :])
+    assert np.array_equal(seen["input"][0, :, :9, 7], x[:, :, 5])
+    assert out.shape == (3, 9, 6) and np.array_equal(out, 2 * x[:3])
+
+
+def test_an_export_matches_torch_through_onnxruntime(tmp_path):
+    torch.manual_seed(3)
+    m = cb.Combiner(mixed=3)
+    path = tmp_path / "c.onnx"
+    worst = cb.export(m, str(path), {"mixed": 3})
+    assert worst < 1e-4
+    back = cb.model_from_onnx(str(path))
+    x = random_input()
+    with torch.no_grad():
+        assert torch.allclose(back(x), m.eval()(x), atol=1e-6)
+    manifest = json.loads((tmp_path / "models.json").read_text())
+    assert manifest["models"]["c.onnx"]["sha256"] == (tmp_path / "c.onnx.sha256").read_text().split()[0]
+
+
+def test_the_checkpoint_rule_prefers_safe_steps_then_the_lowest_worst():
+    log = [{"step": 1, "val_vs_prior": 0.70, "val_worst": ["a", 1.20]},
+           {"step": 2, "val_vs_prior": 0.80, "val_worst": ["a", 1.04]},
+           {"step": 3, "val_vs_prior": 0.75, "val_worst": ["a", 1.05]}]
+    assert cb.choose(log)["step"] == 3
+    unsafe = [dict(e, val_worst=["a", e["val_worst"][1] + 0.1]) for e in log]
+    assert cb.choose(unsafe)["step"] == 2
