@@ -62,13 +62,6 @@ pub const INPUTS: [&str; 9] = [
 /// Data-term weight of the weak candidate (the strong one is l1's `prior` preset's).
 const WEAK_ALPHA: f32 = 0.5;
 
-/// Padding multiple of the graph's input (two 2 x 2 poolings).
-const MULTIPLE: usize = 4;
-
-/// Pixels a tile reads beyond its core: the receptive field's radius is 20 (measured: a change
-/// to one input pixel moves outputs at most 20 pixels away), rounded up to a multiple of 4.
-const MARGIN: usize = 24;
-
 /// Bytes a pixel of a tile costs in the network run (the 27-plane input and ONNX Runtime's
 /// activations), and the run's fixed share. Peak RSS of `gdrecon reconstruct` on a 1280 x 720
 /// bundle: `-m combiner` 1691 MiB whole, 1339 MiB in tiles of 512; `-m l1 --preset prior` 821
@@ -175,7 +168,7 @@ mod enabled {
     use ort::value::TensorRef;
     use rayon::prelude::*;
 
-    use super::{candidates, CombinerConfig, INPUTS, MARGIN, MULTIPLE};
+    use super::{candidates, CombinerConfig, INPUTS};
     use crate::context::Context;
     use crate::error::{Error, Result};
     use crate::frame::{Frame, Layer};
@@ -189,6 +182,13 @@ mod enabled {
     use crate::recon::prior::{anchored, Prior, Quality};
     use crate::recon::{Method, Reconstructor};
     use crate::report::Report;
+
+    /// Padding multiple of the graph's input (two 2 x 2 poolings).
+    const MULTIPLE: usize = 4;
+
+    /// Pixels a tile reads beyond its core: the receptive field's radius is 20 (measured: a change
+    /// to one input pixel moves outputs at most 20 pixels away), rounded up to a multiple of 4.
+    const MARGIN: usize = 24;
 
     /// The combiner's graph in one session.
     struct Net {
