@@ -175,7 +175,7 @@ mod enabled {
     use crate::image::Image;
     use crate::progress::Progress;
     use crate::recon::gradnet::model::{self, ModelBytes, ModelVariant};
-    use crate::recon::gradnet::net::{cancellable, output, session};
+    use crate::recon::gradnet::net::{cancellable, input_names, input_shape, output, session};
     use crate::recon::gradnet::runtime;
     use crate::recon::gradnet::tiles::{self, Overlap, Tile};
     use crate::recon::poisson_l1::PoissonL1;
@@ -203,11 +203,7 @@ mod enabled {
             threads: usize,
         ) -> Result<Net> {
             let session = session(env, model, threads)?;
-            let input = session
-                .inputs()
-                .iter()
-                .find(|o| o.name() == "input")
-                .and_then(|o| o.dtype().tensor_shape().map(|s| s.to_vec()));
+            let input = input_shape(&session, "input");
             let has_output = session.outputs().iter().any(|o| o.name() == "output");
             match input {
                 Some(shape)
@@ -218,12 +214,7 @@ mod enabled {
                          output `output`, found inputs [{}]",
                         model.origin,
                         3 * INPUTS.len(),
-                        session
-                            .inputs()
-                            .iter()
-                            .map(|o| o.name().to_owned())
-                            .collect::<Vec<_>>()
-                            .join(", ")
+                        input_names(&session)
                     )))
                 }
             }

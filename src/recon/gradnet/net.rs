@@ -127,6 +127,25 @@ pub(crate) fn output<'a, E: ndarray::ShapeArg>(
         .map_err(|e| Error::Runtime(format!("{what}: unexpected output shape {dims:?}: {e}")))
 }
 
+/// The shape of the graph's input `name` (dynamic axes as -1), if it has one.
+pub(crate) fn input_shape(session: &Session, name: &str) -> Option<Vec<i64>> {
+    session
+        .inputs()
+        .iter()
+        .find(|o| o.name() == name)
+        .and_then(|o| o.dtype().tensor_shape().map(|s| s.to_vec()))
+}
+
+/// The graph's input names, comma-separated (for errors naming what a graph has instead).
+pub(crate) fn input_names(session: &Session) -> String {
+    session
+        .inputs()
+        .iter()
+        .map(|o| o.name().to_owned())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
 impl Net {
     /// Builds a session for `model` with `threads` intra-op threads.
     pub fn new(
@@ -135,21 +154,8 @@ impl Net {
         threads: usize,
     ) -> Result<Net> {
         let session = session(env, model, threads)?;
-        let input = |name: &str| {
-            session
-                .inputs()
-                .iter()
-                .find(|o| o.name() == name)
-                .and_then(|o| o.dtype().tensor_shape().map(|s| s.to_vec()))
-        };
-        let names = || {
-            session
-                .inputs()
-                .iter()
-                .map(|o| o.name().to_owned())
-                .collect::<Vec<_>>()
-                .join(", ")
-        };
+        let input = |name: &str| input_shape(&session, name);
+        let names = || input_names(&session);
         let (data, grad) = (input("data"), input("grad"));
         let has_output = session.outputs().iter().any(|o| o.name() == "output");
         let data_channels = match (&data, &grad) {
