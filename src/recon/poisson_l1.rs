@@ -378,6 +378,9 @@ pub(crate) struct PoissonL1 {
     pairs: Vec<(f64, f64)>,
     /// Time spent in the preconditioner during the current execution (for the report).
     precond_time: Duration,
+    /// Stop once a step is a fixed point (always, except in the test that shows the skipped
+    /// steps would change nothing).
+    skip_repeats: bool,
 }
 
 /// What one CG solve did.
@@ -421,6 +424,7 @@ impl PoissonL1 {
             partials: Vec::new(),
             pairs: Vec::new(),
             precond_time: Duration::ZERO,
+            skip_repeats: true,
         })
     }
 
@@ -791,7 +795,22 @@ impl Reconstructor for PoissonL1 {
         let (mut reweight_time, mut cg_time) = (Duration::ZERO, Duration::ZERO);
         self.precond_time = Duration::ZERO;
         let mut capped = 0u32;
+        // Steps run: fewer than `steps` once a step is a fixed point (see below).
+        let mut ran = steps;
+        let mut last_iterations = None;
         for step in 0..steps {
+            // A step whose CG had nothing to do left `x` as its weights found it; when the
+            // regularisation has stopped changing too (it is at `reg_floor`), every later step
+            // would compute the same weights, the same system and again no iteration: stop.
+            // The output is the same bits as running them.
+            if self.skip_repeats
+                && step >= 2
+                && last_iterations == Some(0)
+                && self.reg(step) == self.reg(step - 1)
+            {
+                ran = step;
+                break;
+            }
             let t0 = Instant::now();
             if step > 0 {
                 self.reweight(frame, self.reg(step));
@@ -819,6 +838,7 @@ impl Reconstructor for PoissonL1 {
             let outcome = self.cg(bb, &at)?;
             cg_time += t1.elapsed();
             total_iters += outcome.iterations;
+            last_iterations = Some(outcome.iterations);
             last_rel = outcome.rel_residual;
             capped += u32::from(outcome.capped);
         }
@@ -839,8 +859,18 @@ impl Reconstructor for PoissonL1 {
                 self.cfg.cg_iterations
             ));
         }
+        let skipped = if ran < steps {
+            format!(
+                " (the last {} skipped: step {ran} would repeat step {}, whose CG had nothing \
+                 to do)",
+                steps - ran,
+                ran - 1
+            )
+        } else {
+            String::new()
+        };
         report.note(format!(
-            "IRLS: {steps} steps, {total_iters} CG iterations ({}), last relative residual {last_rel:.2e}",
+            "IRLS: {ran} of {steps} steps{skipped}, {total_iters} CG iterations ({}), last relative residual {last_rel:.2e}",
             if self.precond.is_some() {
                 "DCT-preconditioned"
             } else if self.multigrid.is_some() {
@@ -851,5 +881,42 @@ impl Reconstructor for PoissonL1 {
         ));
         out.as_mut_slice().copy_from_slice(&self.x);
         progress.update(1.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::synthetic_frame;
+
+    /// The steps skipped after a fixed point are the ones that would have changed nothing:
+    /// running them gives the same bits. On this frame the prior path's tolerance (1e-4) and
+    /// weight (2.5), on a frame anchored to a clean image, leave a late step with no CG
+    /// iteration, so steps are skipped.
+    #[test]
+    fn skipping_repeated_steps_changes_no_bit() {
+        // Anchored to its reference, as the prior path anchors to a denoiser's output.
+        let noisy = synthetic_frame(96, 64, 16.0, 3);
+        let frame =
+            crate::recon::prior::anchored(noisy.reference().unwrap().clone(), &noisy).unwrap();
+        let config = PoissonL1Config {
+            alpha: DEFAULT_PRIOR_ALPHA_L1,
+            ..PoissonL1Config::prior()
+        };
+        let run = |skip: bool| {
+            let mut solve = PoissonL1::new(config, 96, 64).unwrap();
+            solve.skip_repeats = skip;
+            let mut out = Image::zeros(3, 96, 64);
+            let mut report = Report::default();
+            solve
+                .reconstruct_into(&frame, &mut out, &mut report, &Progress::none())
+                .unwrap();
+            (out, report.notes.join("; "))
+        };
+        let (skipped, note) = run(true);
+        let (all, all_note) = run(false);
+        assert!(note.contains("skipped"), "no step was skipped: {note}");
+        assert!(!all_note.contains("skipped"), "{all_note}");
+        assert_eq!(skipped.as_slice(), all.as_slice(), "{note}");
     }
 }
