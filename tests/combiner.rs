@@ -1,6 +1,7 @@
 //! The combiner through the public API and the CLI: the whole method against the Python
 //! reference (`combiner.combine` in `onnx/gdrecon_py/combiner.py` through onnxruntime, itself
 //! checked against the torch model; fixtures from `python -m gdrecon_py.combiner --fixtures`),
+//! with the fp32 and the int8 graph,
 //! tiled against untiled, against its inputs on the guard frames, and its clear errors.
 //!
 //! The guard frames are given the prior of `tests/fixtures/prior/` as their `prior` layer, so
@@ -12,7 +13,7 @@
 use std::path::{Path, PathBuf};
 
 use assert_cmd::Command;
-use gdrecon::recon::{CombinerConfig, PoissonL1Config};
+use gdrecon::recon::{CombinerConfig, PoissonL1Config, Precision};
 use gdrecon::{
     io, metrics, Context, ContextOptions, Error, Frame, FrameBuilder, Image, Layer, MethodConfig,
     Plan, Policy, Progress, Report,
@@ -64,20 +65,30 @@ fn rel_mse(image: &Image, frame: &Frame) -> f64 {
         .rel_mse
 }
 
+/// Both graphs: fp32 against `combine` through onnxruntime (itself within 1e-4 of the torch
+/// model), int8 against `combine` with the int8 graph through onnxruntime (the same runtime,
+/// so the same kernels; the features and the mix around it are what this checks).
 #[test]
 fn matches_the_python_reference_on_every_guard_frame() {
-    for stem in STEMS {
-        let (got, report) = run(&frame(stem), &MethodConfig::Combiner(Default::default())).unwrap();
-        let want = npy(root().join(format!("tests/fixtures/combiner/{stem}.npy")));
-        let worst = worst_relative(&got, &want);
-        println!("{stem}: worst relative difference {worst:e}");
-        assert!(worst <= 1e-4, "{stem}: {worst:e}");
-        let notes = report.notes.join("\n");
-        assert!(notes.contains("the frame's 'prior' layer"), "{notes}");
-        assert!(
-            notes.contains("combiner: model embedded combiner.onnx"),
-            "{notes}"
-        );
+    for (precision, suffix, file) in [
+        (Precision::Fp32, "", "combiner.onnx"),
+        (Precision::Int8, "_int8", "combiner_int8.onnx"),
+    ] {
+        let mut config = CombinerConfig::default();
+        config.precision = precision;
+        for stem in STEMS {
+            let (got, report) = run(&frame(stem), &MethodConfig::Combiner(config.clone())).unwrap();
+            let want = npy(root().join(format!("tests/fixtures/combiner/{stem}{suffix}.npy")));
+            let worst = worst_relative(&got, &want);
+            println!("{stem} {file}: worst relative difference {worst:e}");
+            assert!(worst <= 1e-4, "{stem} {file}: {worst:e}");
+            let notes = report.notes.join("\n");
+            assert!(notes.contains("the frame's 'prior' layer"), "{notes}");
+            assert!(
+                notes.contains(&format!("combiner: model embedded {file},")),
+                "{notes}"
+            );
+        }
     }
 }
 
@@ -187,7 +198,14 @@ fn the_cli_runs_it_and_names_its_inputs() {
         .assert()
         .success();
     let text = String::from_utf8_lossy(&out.get_output().stdout).to_string();
-    for part in ["l1 (strong)", "l1 (weak)", "network", "combiner relMSE"] {
+    for part in [
+        "l1 (strong)",
+        "l1 (weak)",
+        "features",
+        "network",
+        "mix",
+        "combiner relMSE",
+    ] {
         assert!(text.contains(part), "{part}: {text}");
     }
 }

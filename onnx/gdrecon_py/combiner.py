@@ -13,10 +13,14 @@ reach 0.86 / 0.84 / 0.78x OIDN's relMSE at 4 / 16 / 64 spp; adding L1 with a wea
 inputs the frame has. Mixing the base image in cost the `glass` frames the most (1.2-1.3x the
 prior), so the shipped model mixes three and reads the base image as an input only.
 
-The ONNX graph holds everything after the candidates: the input transforms, the network and the
-weighted sum, so the Rust side only stacks layers (`INPUTS` order) and runs the graph; the output
-is the combined RGB image. Input: N x 27 x H x W float32, H and W multiples of `MULTIPLE`
-(the two 2x poolings); output N x 3 x H x W.
+The ONNX graph holds the network proper (`Combiner.head`): input `features` N x 21 x H x W
+float32 (`features` of the 27 stacked planes, `INPUTS` order), H and W multiples of `MULTIPLE`
+(the two 2x poolings); output `logits` N x 3 x H x W. The input transforms and the softmax-weighted
+sum of the candidates run natively around it (src/recon/combiner.rs; `combine` here is their
+reference): in the graph they were 35 % of its time at 1280 x 720 (the softmax over channels
+alone 11 %, the transforms' splits, slices and pads most of the rest), natively a few
+milliseconds. `combine` runs the whole method as the library does; the torch model's `forward`
+is the same function in one piece (training uses it).
 """
 from __future__ import annotations
 
@@ -82,14 +86,19 @@ class Combiner(nn.Module):
         self.up1 = nn.Sequential(conv(width + thin, thin), nn.ReLU())
         self.out = nn.Conv2d(thin, mixed * taps * taps, 1)
 
-    def weights(self, x):
-        """Per-pixel softmax weights over the candidates (and taps), N x 4 taps^2 x H x W."""
-        f0 = F.relu(self.inc(features(x)))
+    def head(self, f):
+        """The network proper (what the exported graph holds): N x 21 x H x W features ->
+        N x mixed taps^2 x H x W logits."""
+        f0 = F.relu(self.inc(f))
         f1 = self.down1(F.avg_pool2d(f0, 2))
         f2 = self.down2(F.avg_pool2d(f1, 2))
         u1 = self.up2(torch.cat([F.interpolate(f2, scale_factor=2.0, mode="nearest"), f1], 1))
         u0 = self.up1(torch.cat([F.interpolate(u1, scale_factor=2.0, mode="nearest"), f0], 1))
-        return torch.softmax(self.out(u0), 1)
+        return self.out(u0)
+
+    def weights(self, x):
+        """Per-pixel softmax weights over the candidates (and taps), N x mixed taps^2 x H x W."""
+        return torch.softmax(self.head(features(x)), 1)
 
     def forward(self, x):
         w = self.weights(x)
@@ -106,6 +115,25 @@ class Combiner(nn.Module):
             return (w.unsqueeze(2) * cands).sum(1)
         cands = cands.reshape(n, k, 3, h, wd)
         return (w.unsqueeze(2) * cands).sum(1)
+
+
+class Head(nn.Module):
+    """`model.head` as a module of its own: what `export` writes (features in, logits out)."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, f):
+        return self.model.head(f)
+
+
+def mix(logits, x):
+    """The softmax of `logits` (N x k x H x W) over the first k candidates of `x` (N x 27 x H x W):
+    the weighted sum the library computes natively around the graph, N x 3 x H x W."""
+    n, k = logits.shape[:2]
+    h, w = x.shape[2:]
+    return (torch.softmax(logits, 1).unsqueeze(2) * x[:, : 3 * k].reshape(n, k, 3, h, w)).sum(1)
 
 
 def relmse_loss(out, ref):
@@ -125,15 +153,33 @@ def stack(frame, candidates):
     return np.ascontiguousarray(np.concatenate(planes, -1).transpose(2, 0, 1), np.float32)
 
 
-def combine(x, run):
-    """Runs `run` (N x 27 x h x w -> N x 3 x h x w) on the 27 x H x W input padded at the
-    bottom and right to multiples of MULTIPLE by repeating the last row and column (every
-    channel alike), and crops: the library's output, 3 x H x W."""
+def pad(x):
+    """The 27 x H x W input padded at the bottom and right to multiples of MULTIPLE by repeating
+    the last row and column (every channel alike), as 1 x 27 x H' x W'."""
     import numpy as np
     h, w = x.shape[1:]
     ph, pw = (-h) % MULTIPLE, (-w) % MULTIPLE
-    xp = np.pad(x, ((0, 0), (0, ph), (0, pw)), mode="edge")
-    return np.asarray(run(xp[None]))[0, :, :h, :w]
+    return np.pad(x, ((0, 0), (0, ph), (0, pw)), mode="edge")[None]
+
+
+def combine(x, run):
+    """The library's output (3 x H x W) for the 27 x H x W input: `pad`, the features, `run`
+    (the graph: N x 21 x h x w features -> N x k x h x w logits), `mix`, cropped."""
+    import numpy as np
+    h, w = x.shape[1:]
+    xp = torch.from_numpy(pad(x))
+    with torch.no_grad():
+        f = features(xp).numpy()
+        out = mix(torch.from_numpy(np.asarray(run(f))), xp)
+    return out.numpy()[0, :, :h, :w]
+
+
+def reference(x, model):
+    """The torch model's forward in one piece on the padded input, cropped (3 x H x W): what
+    `combine` must equal."""
+    h, w = x.shape[1:]
+    with torch.no_grad():
+        return model(torch.from_numpy(pad(x))).numpy()[0, :, :h, :w]
 
 
 OPSET = 17
@@ -141,9 +187,10 @@ MAX_IR = 10
 
 
 def export(model, path, metadata=None):
-    """Writes `model` as ONNX (input `input` N x 27 x H x W, output `output` N x 3 x H x W;
-    N, H, W dynamic), `path`.sha256, and its entry in onnx/models.json; returns the max
-    |torch - onnxruntime| over two random inputs (must be under 1e-4)."""
+    """Writes `model`'s head as ONNX (input `features` N x 21 x H x W, output `logits`
+    N x mixed x H x W; N, H, W dynamic), `path`.sha256, and its entry in onnx/models.json;
+    returns the max |torch - onnxruntime| over two random inputs, of the logits and of the whole
+    method (`combine` against the model's forward; must be under 1e-4)."""
     import hashlib
     import json
     import os
@@ -153,14 +200,18 @@ def export(model, path, metadata=None):
 
     from . import runtime
     model = model.eval()
-    dyn = {"input": {0: "N", 2: "H", 3: "W"}, "output": {0: "N", 2: "H", 3: "W"}}
-    torch.onnx.export(model, torch.zeros(1, IN_CHANNELS, 32, 48), path, input_names=["input"],
-                      output_names=["output"], dynamic_axes=dyn, opset_version=OPSET,
-                      dynamo=False, do_constant_folding=True, export_params=True)
+    if model.taps != 1:
+        raise SystemExit("only taps = 1 exports: the library mixes one weight per candidate")
+    dyn = {"features": {0: "N", 2: "H", 3: "W"}, "logits": {0: "N", 2: "H", 3: "W"}}
+    torch.onnx.export(Head(model), torch.zeros(1, FEATURES, 32, 48), path,
+                      input_names=["features"], output_names=["logits"], dynamic_axes=dyn,
+                      opset_version=OPSET, dynamo=False, do_constant_folding=True,
+                      export_params=True)
     m = onnx.load(path)
     m.ir_version = min(m.ir_version, MAX_IR)
-    meta = {"inputs": ",".join(INPUTS), "size_multiple": str(MULTIPLE),
-            "producer_note": "gdrecon combiner; see onnx/gdrecon_py/combiner.py"}
+    meta = {"inputs": ",".join(INPUTS), "features": str(FEATURES), "output": "logits",
+            "size_multiple": str(MULTIPLE),
+            "producer_note": "gdrecon combiner's head; see onnx/gdrecon_py/combiner.py"}
     meta.update(metadata or {})
     del m.metadata_props[:]
     for k, v in meta.items():
@@ -172,11 +223,14 @@ def export(model, path, metadata=None):
     rng = np.random.default_rng(0)
     worst = 0.0
     for (h, w) in [(16, 24), (40, 32)]:
-        x = rng.random((2, IN_CHANNELS, h, w), dtype=np.float32) * 2
+        f = rng.standard_normal((2, FEATURES, h, w), dtype=np.float32)
         with torch.no_grad():
-            ref = model(torch.from_numpy(x)).numpy()
-        got = sess.run(["output"], {"input": x})[0]
+            ref = model.head(torch.from_numpy(f)).numpy()
+        got = sess.run(["logits"], {"features": f})[0]
         worst = max(worst, float(np.abs(ref - got).max()))
+        x = rng.random((IN_CHANNELS, h - 1, w - 3), dtype=np.float32) * 2
+        got = combine(x, lambda a: sess.run(["logits"], {"features": a})[0])
+        worst = max(worst, float(np.abs(reference(x, model) - got).max()))
     if worst > 1e-4:
         raise SystemExit(f"{path}: torch and onnxruntime differ by {worst:.2e}")
     digest = hashlib.sha256(open(path, "rb").read()).hexdigest()
@@ -187,8 +241,8 @@ def export(model, path, metadata=None):
     d = json.load(open(manifest)) if os.path.exists(manifest) else {"models": {}}
     d["models"][base] = {"file": base, "sha256": digest, "bytes": os.path.getsize(path),
                          "ir_version": m.ir_version, "opset": m.opset_import[0].version,
-                         "inputs": {"input": ["N", IN_CHANNELS, "H", "W"]},
-                         "outputs": {"output": ["N", 3, "H", "W"]},
+                         "inputs": {"features": ["N", FEATURES, "H", "W"]},
+                         "outputs": {"logits": ["N", model.mixed, "H", "W"]},
                          "parity_max_abs": worst, **(metadata or {})}
     with open(manifest, "w") as f:
         json.dump(d, f, indent=1, sort_keys=True)
@@ -205,7 +259,8 @@ def write_fixtures(model_path="onnx/combiner.onnx", gdrecon="target/release/gdre
     given the prior of tests/fixtures/prior/<stem>_oidn.npy as its `prior` layer (so OIDN's
     instruction-set differences stay out), the candidates as the library computes them (the
     CLI), then `combine` through onnxruntime, checked against torch (1e-4), written as
-    tests/fixtures/combiner/<stem>.npy (H x W x 3 float32)."""
+    tests/fixtures/combiner/<stem>.npy (H x W x 3 float32); with combiner_int8.onnx beside the
+    model, `combine` through it too, as <stem>_int8.npy."""
     import glob
     import os
     import shutil
@@ -219,6 +274,8 @@ def write_fixtures(model_path="onnx/combiner.onnx", gdrecon="target/release/gdre
     from .data.render import add_layers, read_bundle
     from .pipeline import sanitize
     sess = runtime.session(model_path)
+    int8_path = os.path.join(os.path.dirname(model_path), "combiner_int8.onnx")
+    int8 = runtime.session(int8_path) if os.path.exists(int8_path) else None
     model = model_from_onnx(model_path)
     os.makedirs(FIXTURES, exist_ok=True)
     for path in sorted(glob.glob(os.path.join(GUARD, "*.exr"))):
@@ -235,23 +292,29 @@ def write_fixtures(model_path="onnx/combiner.onnx", gdrecon="target/release/gdre
                 cands[name] = read_bundle(out)[0][""]
             layers, _ = read_bundle(bundle)
         x = stack(sanitize(layers) | {"variance": layers["variance"]}, cands)
-        got = combine(x, lambda a: sess.run(["output"], {"input": a})[0])
-        with torch.no_grad():
-            ref = combine(x, lambda a: model(torch.from_numpy(a)).numpy())
+        got = combine(x, lambda a: sess.run(["logits"], {"features": a})[0])
+        ref = reference(x, model)
         worst = float(np.max(np.abs(got - ref) / (np.abs(ref) + 1e-3)))
         if worst > 1e-4:
             raise SystemExit(f"{stem}: onnxruntime and torch differ by {worst:.2e} (relative)")
         np.save(os.path.join(FIXTURES, f"{stem}.npy"), np.ascontiguousarray(got.transpose(1, 2, 0)))
         print(f"{stem}: written; |onnxruntime - torch| <= {worst:.1e} relative")
+        if int8 is not None:
+            q = combine(x, lambda a: int8.run(["logits"], {"features": a})[0])
+            np.save(os.path.join(FIXTURES, f"{stem}_int8.npy"), np.ascontiguousarray(q.transpose(1, 2, 0)))
+            off = float(np.max(np.abs(q - got) / (np.abs(got) + 1e-3)))
+            print(f"{stem}: int8 written; |int8 - fp32| <= {off:.1e} relative")
 
 
 def model_from_onnx(path):
-    """The torch model with the weights stored in an exported graph (initialisers by name)."""
+    """The torch model with the weights stored in an exported graph (initialisers by name: the
+    head's graph names them `model.<name>`; graphs of the whole model, before 0.3, `<name>`)."""
     import numpy as np
     import onnx
     from onnx import numpy_helper
     m = onnx.load(path)
-    inits = {i.name: torch.from_numpy(np.array(numpy_helper.to_array(i))) for i in m.graph.initializer}
+    inits = {i.name.removeprefix("model."): torch.from_numpy(np.array(numpy_helper.to_array(i)))
+             for i in m.graph.initializer}
     meta = {p.key: p.value for p in m.metadata_props}
     model = Combiner(mixed=int(meta.get("mixed", len(CANDIDATES))))
     sd = model.state_dict()
@@ -260,6 +323,54 @@ def model_from_onnx(path):
         raise KeyError(f"{path}: initialisers missing for {missing[:4]}")
     model.load_state_dict({k: inits[k] for k in sd})
     return model.eval()
+
+
+INT8_EXCLUDE = ("/model/inc/Conv", "/model/out/Conv")
+CALIBRATION = "~/.cache/gdrecon/data/train2-calib"
+
+
+def quantize_int8(model_path, out, data, exclude=INT8_EXCLUDE):
+    """The head in int8 (QDQ; `quantize.quantize`'s defaults: int8 weights per output channel,
+    uint8 activations, MinMax), calibrated on the features of every bundle in `data` (training
+    split only; the candidates beside them, `candidates.py`), padded as `combine` pads. The
+    first convolution (21 inputs of unlike scales) and the logits' stay fp32 (`exclude`):
+    they cost nothing measurable in speed. Writes `out`, `out`.sha256 and its models.json entry."""
+    import hashlib
+    import os
+
+    import onnxruntime
+
+    from . import quantize as q
+    from .export import update_manifest
+    from .train_combiner import load_frame
+    files = q.calibration_files(os.path.expanduser(data), 0)
+    feeds = []
+    for f in files:
+        x, _ = load_frame(f)
+        with torch.no_grad():
+            feeds.append({"features": features(torch.from_numpy(pad(x))).numpy()})
+    m = q.quantize(model_path, out, feeds, exclude=list(exclude))
+    digest = q.sha256_file(out)
+    base = os.path.basename(out)
+    with open(out + ".sha256", "w") as fh:
+        fh.write(f"{digest}  {base}\n")
+    update_manifest({
+        "file": base, "sha256": digest, "bytes": os.path.getsize(out), "precision": "int8",
+        "ir_version": m.ir_version, "opset": m.opset_import[0].version,
+        "inputs": {"features": ["N", FEATURES, "H", "W"]},
+        "outputs": {"logits": ["N", 3, "H", "W"]},
+        "source": {"file": os.path.basename(model_path), "sha256": q.sha256_file(model_path)},
+        "quantization": {"tool": f"onnxruntime.quantization {onnxruntime.__version__}",
+                         "format": "qdq", "weights": "int8 symmetric per channel",
+                         "activations": "u8 asymmetric per tensor", "reduce_range": False,
+                         "calibration": "minmax", "nodes_in_fp32": list(exclude)},
+        "calibration": {"split": "training only",
+                        "dir": data.replace(os.path.expanduser("~"), "~"),
+                        "bundles": [os.path.basename(f) for f in files],
+                        "bundles_sha256": hashlib.sha256("\n".join(
+                            q.sha256_file(f) for f in files).encode()).hexdigest()}},
+        os.path.join(os.path.dirname(os.path.abspath(out)), "models.json"))
+    print(f"{out}: {len(files)} calibration bundles, sha256 {digest}")
 
 
 WORST = 1.05
@@ -279,8 +390,12 @@ def choose(log):
 def main(argv=None):
     """python -m gdrecon_py.combiner --ckpt RUN/last.pt --out onnx/combiner.onnx
     python -m gdrecon_py.combiner --fixtures      (run from the repository root)
+    python -m gdrecon_py.combiner --from-onnx OLD.onnx --out onnx/combiner.onnx
+    python -m gdrecon_py.combiner --int8 [--data DIR] --out onnx/combiner_int8.onnx
 
-    Exports the evaluated step `choose` picks from the run's log."""
+    Exports the evaluated step `choose` picks from the run's log; or, with --from-onnx, the
+    weights and training metadata of an exported graph again (how the shipped head was made
+    from the whole-model graph of 0.2: same weights, same outputs to 1e-6)."""
     import argparse
     import json
     import os
@@ -288,10 +403,30 @@ def main(argv=None):
     ap.add_argument("--ckpt")
     ap.add_argument("--out", default="onnx/combiner.onnx")
     ap.add_argument("--fixtures", action="store_true")
+    ap.add_argument("--from-onnx", help="re-export the weights of this graph")
+    ap.add_argument("--int8", action="store_true",
+                    help="quantise onnx/combiner.onnx to --out, calibrated on --data")
+    ap.add_argument("--data", default=CALIBRATION, help="training bundles (default %(default)s)")
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
+    if args.int8:
+        quantize_int8(os.path.join(os.path.dirname(os.path.abspath(args.out)), "combiner.onnx"),
+                      args.out, args.data)
+        return
     if args.fixtures:
         write_fixtures(args.out)
+        return
+    if args.from_onnx:
+        import onnx
+        old = {p.key: p.value for p in onnx.load(args.from_onnx).metadata_props}
+        keep = ("train_steps", "chosen_step", "val_vs_prior", "val_worst", "mixed", "train_args")
+        # the graph's metadata holds strings: numbers and lists back as they were written
+        import ast
+        meta = {k: old[k] if k == "train_args" else ast.literal_eval(old[k])
+                for k in keep if k in old}
+        model = model_from_onnx(args.from_onnx)
+        worst = export(model, args.out, meta)
+        print(f"{args.out}: from {args.from_onnx}; max |torch - onnxruntime| = {worst:.2e}")
         return
     ck = torch.load(args.ckpt, map_location="cpu", weights_only=False)
     args_ = ck.get("args", {})

@@ -1,6 +1,7 @@
 """The combiner's Python side: the weighted sum is a convex combination of the candidates, the
-reference `combine` pads and crops as the Rust side does, an export matches torch through
-onnxruntime, and the checkpoint rule. (Resuming a training run bit for bit was checked by hand:
+reference `combine` pads, mixes and crops as the Rust side does and equals the model's forward,
+an export (the head: features in, logits out) matches torch through onnxruntime, and the
+checkpoint rule. (Resuming a training run bit for bit was checked by hand:
 `--stop-at 20` then a rerun gives the uninterrupted run's losses to the last digit.)"""
 import json
 
@@ -50,17 +51,30 @@ def test_taps_weight_each_candidate_at_its_neighbours():
 def test_combine_repeats_the_last_row_and_column_and_crops():
     seen = {}
 
-    def run(a):
-        seen["shape"] = a.shape
-        seen["input"] = a
-        return a[:, :3] * 2
+    def run(f):
+        seen["features"] = f
+        return np.zeros((1, 3) + f.shape[2:], np.float32)  # equal weights
 
     x = np.random.default_rng(0).random((cb.IN_CHANNELS, 9, 6), dtype=np.float32)
     out = cb.combine(x, run)
-    assert seen["shape"] == (1, cb.IN_CHANNELS, 12, 8)
-    assert np.array_equal(seen["input"][0, :, 11, :6], x[:, 8, :])
-    assert np.array_equal(seen["input"][0, :, :9, 7], x[:, :, 5])
-    assert out.shape == (3, 9, 6) and np.array_equal(out, 2 * x[:3])
+    f = seen["features"]
+    assert f.shape == (1, cb.FEATURES, 12, 8)
+    # the features of the repeated rows and columns are those of the last ones (the
+    # forward differences there are 0 in both), which is what lets the library compute them
+    # from the frame with clamped coordinates instead of padding the frame
+    assert np.array_equal(f[0, :, 11, :6], f[0, :, 8, :6])
+    assert np.array_equal(f[0, :, :9, 7], f[0, :, :9, 5])
+    assert out.shape == (3, 9, 6)
+    assert np.allclose(out, x[:9].reshape(3, 3, 9, 6).mean(0), atol=1e-6)
+
+
+def test_combine_is_the_models_forward():
+    torch.manual_seed(4)
+    m = cb.Combiner(mixed=3).eval()
+    x = random_input(n=1, h=13, w=10)[0].numpy()
+    with torch.no_grad():
+        got = cb.combine(x, lambda f: m.head(torch.from_numpy(f)).numpy())
+    assert np.allclose(got, cb.reference(x, m), atol=1e-6)
 
 
 def test_an_export_matches_torch_through_onnxruntime(tmp_path):

@@ -9,17 +9,22 @@
 //! the combiner").
 //!
 //! The network (`onnx/gdrecon_py/combiner.py`, trained on the training split against
-//! references, `onnx/combiner.onnx`) holds every transform after the candidates: this module
-//! stacks 27 planes (the candidates, the base image, the variance, albedo, normal and the two
-//! gradients) padded to a multiple of 4 by repeating the last row and column, runs the graph
-//! in overlapping tiles when the frame is large, and keeps each tile's core.
-//! `combiner.combine` in that file is the reference the parity test holds this to.
+//! references) is shipped as its head alone (`onnx/combiner.onnx`: 21 feature planes in, one
+//! logit per candidate out). This module computes the features natively from the 27 planes
+//! the model reads (the candidates, the base image, the variance, albedo, normal and the two
+//! gradients; scale-free transforms, see [`features`]) as if the frame were padded to a
+//! multiple of 4 by repeating its last row and column, runs the graph in overlapping tiles
+//! when the frame is large, and mixes the candidates by the softmax of the logits over each
+//! tile's core. In the graph, those transforms and the softmax were 35 % of its time at
+//! 1280 x 720; here they take a few milliseconds. `combiner.combine` in that file is the
+//! reference the parity test holds this to.
 //!
 //! Needs ONNX Runtime (the `gradnet` cargo feature; found as for GradNet), a prior (OIDN or
 //! the frame's `prior` layer) and the frame's variance, albedo and normal layers.
 
 use std::path::PathBuf;
 
+use super::gradnet::Precision;
 use super::param::{Param, Params};
 use super::poisson_l1::{l1_memory, PoissonL1Config};
 use super::prior::prior_memory;
@@ -40,6 +45,8 @@ pub struct CombinerConfig {
     pub whole_pixels: usize,
     /// Tile side in pixels for frames larger than `whole_pixels`; `0` never tiles.
     pub tile_size: usize,
+    /// Which embedded graph runs (ignored when [`Self::model`] is given).
+    pub precision: Precision,
 }
 
 impl Default for CombinerConfig {
@@ -49,6 +56,7 @@ impl Default for CombinerConfig {
             runtime: None,
             whole_pixels: 1 << 21,
             tile_size: 512,
+            precision: Precision::Int8,
         }
     }
 }
@@ -62,8 +70,9 @@ pub const INPUTS: [&str; 9] = [
 /// Data-term weight of the weak candidate (the strong one is l1's `prior` preset's).
 const WEAK_ALPHA: f32 = 0.5;
 
-/// Bytes a pixel of a tile costs in the network run (the 27-plane input and ONNX Runtime's
-/// activations), and the run's fixed share. Peak RSS of `gdrecon reconstruct` on a 1280 x 720
+/// Bytes a pixel of a tile costs in the network run (the 21-plane input and ONNX Runtime's
+/// activations), and the run's fixed share. Measured with the whole graph (27 planes in,
+/// features, softmax and sum inside), which the head alone does not exceed. Peak RSS of `gdrecon reconstruct` on a 1280 x 720
 /// bundle: `-m combiner` 1691 MiB whole, 1339 MiB in tiles of 512; `-m l1 --preset prior` 821
 /// MiB. Less the second L1 solve and the candidates (about 170 MiB) that leaves about 700 MiB
 /// for the network run whole (760 B a pixel) and 350 MiB for a 512 x 512 tile.
@@ -89,6 +98,15 @@ impl Params for CombinerConfig {
              tiles bound the network's memory); 0 never tiles; otherwise at least 56",
             |c| c.tile_size as i64,
             |c, v| c.tile_size = v as usize,
+        ),
+        Param::choice(
+            "precision",
+            Precision::NAMES,
+            "Arithmetic of the network: int8 (onnx/combiner_int8.onnx, quantised on the \
+             training split; the network 2x faster, relMSE within 1 % of fp32 on validation \
+             and test) or fp32 (onnx/combiner.onnx); ignored when a model file is given",
+            |c| c.precision.index(),
+            |c, v| c.precision = Precision::ALL[v],
         ),
     ];
 }
@@ -162,13 +180,14 @@ impl Register for CombinerConfig {
 mod enabled {
     use std::borrow::Cow;
     use std::sync::{Arc, Mutex};
+    use std::time::{Duration, Instant};
 
-    use ndarray::{s, Array4, ArrayView3, ArrayView4};
+    use ndarray::{Array4, ArrayView3, ArrayView4};
     use ort::session::Session;
     use ort::value::TensorRef;
     use rayon::prelude::*;
 
-    use super::{candidates, CombinerConfig, INPUTS};
+    use super::{candidates, CombinerConfig, Precision};
     use crate::context::Context;
     use crate::error::{Error, Result};
     use crate::frame::{Frame, Layer};
@@ -181,7 +200,7 @@ mod enabled {
     use crate::recon::poisson_l1::PoissonL1;
     use crate::recon::prior::{anchored, Prior, Quality};
     use crate::recon::{Method, Reconstructor};
-    use crate::report::Report;
+    use crate::report::{Report, Stage};
 
     /// Padding multiple of the graph's input (two 2 x 2 poolings).
     const MULTIPLE: usize = 4;
@@ -189,6 +208,14 @@ mod enabled {
     /// Pixels a tile reads beyond its core: the receptive field's radius is 20 (measured: a change
     /// to one input pixel moves outputs at most 20 pixels away), rounded up to a multiple of 4.
     const MARGIN: usize = 24;
+
+    /// Planes of the graph's input (`combiner.py`'s `FEATURES`), and the candidates it weights
+    /// (the first three of [`INPUTS`](super::INPUTS)).
+    const FEATURES: usize = 21;
+    const MIXED: usize = 3;
+
+    /// Radiance floor of the scale each pixel is measured in (`combiner.py`'s `FLOOR`).
+    const FLOOR: f32 = 0.01;
 
     /// The combiner's graph in one session.
     struct Net {
@@ -203,17 +230,15 @@ mod enabled {
             threads: usize,
         ) -> Result<Net> {
             let session = session(env, model, threads)?;
-            let input = input_shape(&session, "input");
-            let has_output = session.outputs().iter().any(|o| o.name() == "output");
+            let input = input_shape(&session, "features");
+            let has_output = session.outputs().iter().any(|o| o.name() == "logits");
             match input {
-                Some(shape)
-                    if shape.len() == 4 && shape[1] == 3 * INPUTS.len() as i64 && has_output => {}
+                Some(shape) if shape.len() == 4 && shape[1] == FEATURES as i64 && has_output => {}
                 _ => {
                     return Err(Error::Model(format!(
-                        "{}: not a combiner graph: expected input `input` (N x {} x H x W) and \
-                         output `output`, found inputs [{}]",
+                        "{}: not a combiner graph: expected input `features` (N x {FEATURES} x \
+                         H x W) and output `logits`, found inputs [{}]",
                         model.origin,
-                        3 * INPUTS.len(),
                         input_names(&session)
                     )))
                 }
@@ -224,8 +249,8 @@ mod enabled {
             })
         }
 
-        /// Runs the graph on `input` (1 x 27 x H x W) and hands its 3 x H x W output to
-        /// `consume`.
+        /// Runs the graph on `input` (1 x 21 x H x W features) and hands its logits
+        /// (3 x H x W) to `consume`.
         fn run(
             &mut self,
             input: ArrayView4<'_, f32>,
@@ -237,9 +262,9 @@ mod enabled {
             let session = &mut self.session;
             cancellable(stop, |options| {
                 let outputs = session
-                    .run_with_options(ort::inputs!["input" => input], options)
+                    .run_with_options(ort::inputs!["features" => input], options)
                     .map_err(fail)?;
-                consume(output(&outputs, "combiner inference", |d| {
+                consume(output(&outputs, "logits", "combiner inference", |d| {
                     (d[1], d[2], d[3])
                 })?);
                 Ok(())
@@ -256,7 +281,7 @@ mod enabled {
         outputs: [Image; 2],
         net: Arc<Mutex<Net>>,
         tiles: Vec<Tile>,
-        /// One tile's input, `1 x 27 x th x tw`.
+        /// One tile's input, `1 x 21 x th x tw`.
         input: Array4<f32>,
         runtime_path: String,
     }
@@ -293,15 +318,19 @@ mod enabled {
             let (th, tw) = (tiles[0].y.size, tiles[0].x.size);
             let rt = runtime::runtime(config.runtime.as_deref())?;
             let threads = context.threads();
+            let variant = match config.precision {
+                Precision::Int8 => ModelVariant::CombinerInt8,
+                Precision::Fp32 => ModelVariant::Combiner,
+            };
             let source = match &config.model {
                 Some(path) => format!("file {}", path.display()),
-                None => format!("embedded {}", ModelVariant::Combiner.file_name()),
+                None => format!("embedded {}", variant.file_name()),
             };
             let model_path = config.model.clone();
             let net = context.shared(&format!("combiner: {source}: {threads} threads"), || {
                 let bytes = match &model_path {
                     Some(path) => model::from_file(path)?,
-                    None => model::embedded(ModelVariant::Combiner)?,
+                    None => model::embedded(variant)?,
                 };
                 Ok(Mutex::new(Net::new(&rt.env, &bytes, threads)?))
             })?;
@@ -318,7 +347,7 @@ mod enabled {
                 ],
                 net,
                 tiles,
-                input: Array4::zeros((1, 3 * INPUTS.len(), th, tw)),
+                input: Array4::zeros((1, FEATURES, th, tw)),
                 runtime_path: rt.path.display().to_string(),
             })
         }
@@ -344,22 +373,115 @@ mod enabled {
         }
     }
 
-    /// Fills `input` (1 x 27 x th x tw) with tile `tile` of `sources` (9 images of 3 channels,
-    /// [`INPUTS`] order); pixels beyond the frame repeat its last row and column.
-    fn fill(input: &mut Array4<f32>, sources: [&Image; 9], tile: Tile) {
+    /// `x / (1 + |x|)`: `combiner.py`'s `_soft`, a signed compression to (-1, 1).
+    fn soft(x: f32) -> f32 {
+        x / (1.0 + x.abs())
+    }
+
+    /// Fills `input` (1 x 21 x th x tw) with the features of tile `tile` of `sources` (9 images
+    /// of 3 channels, [`INPUTS`](super::INPUTS) order) as `combiner.py`'s `features` computes them on the
+    /// frame padded by repeating its last row and column: pixels beyond the frame take the
+    /// last row's and column's features, whose forward differences are 0 in both.
+    // The column index also gives the source column; writing 21 planes at it is clearer than
+    // zipping 21 iterators.
+    #[allow(clippy::needless_range_loop)]
+    fn features(input: &mut Array4<f32>, sources: [&Image; 9], tile: Tile) {
         let (w, h) = sources[0].size();
-        input
-            .index_axis_mut(ndarray::Axis(0), 0)
-            .outer_iter_mut()
-            .into_par_iter()
+        let n = w * h;
+        let src: [&[f32]; 9] = sources.map(Image::as_slice);
+        let (th, tw) = (input.dim().2, input.dim().3);
+        let planes = input.as_slice_mut().expect("a tile's input is contiguous");
+        // Row `ty` of every plane, so that rows can be filled in parallel.
+        let mut rows: Vec<Vec<&mut [f32]>> =
+            (0..th).map(|_| Vec::with_capacity(FEATURES)).collect();
+        for plane in planes.chunks_mut(th * tw) {
+            for (row, slot) in plane.chunks_mut(tw).zip(&mut rows) {
+                slot.push(row);
+            }
+        }
+        // Columns of the tile inside the frame; those beyond repeat the last one's features.
+        // (At least one, so that a tile starting in the padding copies the frame's last column.)
+        let inside = w.saturating_sub(tile.x.origin).clamp(1, tw);
+        rows.into_par_iter().enumerate().for_each(|(ty, mut out)| {
+            let sy = (tile.y.origin + ty).min(h - 1);
+            let row = |s: usize, c: usize, y: usize| &src[s][c * n + y * w..c * n + (y + 1) * w];
+            let cur: [[&[f32]; 3]; 9] =
+                std::array::from_fn(|s| std::array::from_fn(|c| row(s, c, sy)));
+            // The row below the prior and the strong candidate, for their vertical
+            // differences; the last row is its own "below", so its difference is 0.
+            let down: [[&[f32]; 3]; 2] =
+                std::array::from_fn(|s| std::array::from_fn(|c| row(s, c, (sy + 1).min(h - 1))));
+            for tx in 0..inside {
+                let x = (tile.x.origin + tx).min(w - 1);
+                let right = (x + 1).min(w - 1);
+                let prior = [cur[0][0][x], cur[0][1][x], cur[0][2][x]];
+                // The pixel's scale, from the least noisy estimate.
+                let q = (prior[0] + prior[1] + prior[2]) / 3.0 + FLOOR;
+                // The strong and weak candidates and the base image, relative to the prior.
+                for s in 1..4 {
+                    for c in 0..3 {
+                        out[3 * (s - 1) + c][tx] = soft((cur[s][c][x] - prior[c]) / q);
+                    }
+                }
+                out[9][tx] = q.ln();
+                let var = (0..3).map(|c| cur[4][c][x].max(0.0)).sum::<f32>() / 3.0;
+                out[10][tx] = (var.sqrt() / q + 1e-3).ln();
+                // How far the prior and the strong candidate are from the gradients: the mean
+                // over channels of |g - forward difference| (0 at the last column and row).
+                for s in 0..2 {
+                    let (mut ex, mut ey) = (0.0f32, 0.0f32);
+                    for c in 0..3 {
+                        let v = cur[s][c][x];
+                        ex += (cur[7][c][x] - (cur[s][c][right] - v)).abs();
+                        ey += (cur[8][c][x] - (down[s][c][x] - v)).abs();
+                    }
+                    out[11 + 2 * s][tx] = soft(ex / 3.0 / q);
+                    out[12 + 2 * s][tx] = soft(ey / 3.0 / q);
+                }
+                for c in 0..3 {
+                    out[15 + c][tx] = cur[5][c][x].clamp(0.0, 1.0);
+                    out[18 + c][tx] = cur[6][c][x].clamp(-1.0, 1.0);
+                }
+            }
+            for plane in out.iter_mut() {
+                let last = plane[inside - 1];
+                plane[inside..].fill(last);
+            }
+        });
+    }
+
+    /// Writes the core of `tile` into `out`: per pixel, the candidates (`sources`' first
+    /// [`MIXED`]) weighted by the softmax of the graph's `logits` (3 x th x tw).
+    fn mix(out: &mut Image, logits: ArrayView3<'_, f32>, sources: [&Image; 9], tile: Tile) {
+        let (w, h) = out.size();
+        let n = w * h;
+        let cands: [&[f32]; MIXED] = std::array::from_fn(|k| sources[k].as_slice());
+        let rows = tile.y.core_start..tile.y.core_end.min(h);
+        let cols = tile.x.core_start..tile.x.core_end.min(w);
+        let (r, g, b) = {
+            let planes = out.as_mut_slice();
+            let (r, rest) = planes.split_at_mut(n);
+            let (g, b) = rest.split_at_mut(n);
+            (r, g, b)
+        };
+        let span = rows.start * w..rows.end * w;
+        r[span.clone()]
+            .par_chunks_mut(w)
+            .zip(g[span.clone()].par_chunks_mut(w))
+            .zip(b[span].par_chunks_mut(w))
             .enumerate()
-            .for_each(|(k, mut plane)| {
-                let src = sources[k / 3].plane(k % 3);
-                for (ty, mut row) in plane.outer_iter_mut().enumerate() {
-                    let sy = (tile.y.origin + ty).min(h - 1);
-                    let src = src.row(sy);
-                    for (tx, v) in row.iter_mut().enumerate() {
-                        *v = src[(tile.x.origin + tx).min(w - 1)];
+            .for_each(|(k, ((r, g), b))| {
+                let y = rows.start + k;
+                let ty = y - tile.y.origin;
+                for x in cols.clone() {
+                    let tx = x - tile.x.origin;
+                    let l: [f32; MIXED] = std::array::from_fn(|k| logits[(k, ty, tx)]);
+                    let top = l.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                    let e = l.map(|v| (v - top).exp());
+                    let sum: f32 = e.iter().sum();
+                    let i = y * w + x;
+                    for (c, o) in [&mut r[x], &mut g[x], &mut b[x]].into_iter().enumerate() {
+                        *o = (0..MIXED).map(|k| e[k] / sum * cands[k][c * n + i]).sum();
                     }
                 }
             });
@@ -407,29 +529,33 @@ mod enabled {
                 frame.dy(),
             ];
             let mut net = self.net.lock().unwrap_or_else(|p| p.into_inner());
-            let (w, h) = frame.size();
             let count = self.tiles.len();
-            report.time("network", || {
-                for (i, tile) in self.tiles.iter().enumerate() {
-                    fill(&mut self.input, sources, *tile);
-                    net.run(self.input.view(), progress, |y| {
-                        let rows = tile.y.core_start..tile.y.core_end.min(h);
-                        let cols = tile.x.core_start..tile.x.core_end.min(w);
-                        for c in 0..3 {
-                            let src = y.slice(s![
-                                c,
-                                rows.start - tile.y.origin..rows.end - tile.y.origin,
-                                cols.start - tile.x.origin..cols.end - tile.x.origin
-                            ]);
-                            out.plane_mut(c)
-                                .slice_mut(s![rows.clone(), cols.clone()])
-                                .assign(&src);
-                        }
-                    })?;
-                    progress.update((i + 1) as f64 / count as f64)?;
+            // Stages summed over the tiles: the native steps around the graph, and the graph.
+            let mut times = [Duration::ZERO; 3];
+            for (i, tile) in self.tiles.iter().enumerate() {
+                let t0 = Instant::now();
+                features(&mut self.input, sources, *tile);
+                let t1 = Instant::now();
+                let mut t2 = t1;
+                net.run(self.input.view(), progress, |logits| {
+                    t2 = Instant::now();
+                    mix(out, logits, sources, *tile)
+                })?;
+                for (time, (start, end)) in
+                    times
+                        .iter_mut()
+                        .zip([(t0, t1), (t1, t2), (t2, Instant::now())])
+                {
+                    *time += end - start;
                 }
-                Ok::<_, Error>(())
-            })?;
+                progress.update((i + 1) as f64 / count as f64)?;
+            }
+            for (name, time) in ["features", "network", "mix"].into_iter().zip(times) {
+                report.stages.push(Stage {
+                    name: name.into(),
+                    time,
+                });
+            }
             report.note(format!(
                 "combiner: model {}, ONNX Runtime {}, {} tile(s) of {} x {}",
                 net.origin,

@@ -43,7 +43,7 @@ pub use combiner::CombinerConfig;
 #[cfg(feature = "testing")]
 pub use copy::CopyConfig;
 pub use frgr::{FrgrConfig, FrgrGuide};
-pub use gradnet::{GradNetConfig, GradNetPrecision};
+pub use gradnet::{GradNetConfig, GradNetPrecision, Precision};
 pub use param::{Kind, ParamInfo, Range, Value};
 pub use poisson_l1::{PoissonL1Config, Preconditioner};
 pub use poisson_l2::PoissonL2Config;

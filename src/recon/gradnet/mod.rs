@@ -31,28 +31,35 @@ use std::path::PathBuf;
 
 pub use model::ModelVariant;
 
-/// Arithmetic of the feature model's network: the exported fp32 graph, or its int8
-/// quantisation (`onnx/gradnet_int8.onnx`, `docs/gradnet.md`, "Reduced precision": about 3x
-/// faster on a CPU with AVX-512 VNNI, relMSE +0.8 % on the validation and +0.9 % on the test
-/// split in the geometric mean). Frames without features always run the fp32 no-feature model
-/// (its int8 version missed the accuracy bar: +5.5 % on validation).
+/// Arithmetic of a network: the exported fp32 graph, or its int8 quantisation, calibrated on
+/// the training split.
+///
+/// GradNet's feature model (`onnx/gradnet_int8.onnx`, `docs/gradnet.md`, "Reduced
+/// precision": about 3x faster on a CPU with AVX-512 VNNI, relMSE +0.8 % on the validation
+/// and +0.9 % on the test split in the geometric mean); frames without features always run
+/// the fp32 no-feature model (its int8 version missed the accuracy bar: +5.5 % on
+/// validation). The combiner's head: `onnx/combiner_int8.onnx` (`docs/benchmarks.md`,
+/// "Seventeenth session").
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum GradNetPrecision {
-    /// `gradnet_int8.onnx` (the default).
+pub enum Precision {
+    /// The int8 graph (the default).
     Int8,
-    /// `gradnet.onnx`, the graph the torch parity tests hold to 1e-4.
+    /// The fp32 graph, the one the torch parity tests hold to 1e-4.
     Fp32,
 }
 
-choices!(GradNetPrecision { Int8 => "int8", Fp32 => "fp32" });
+choices!(Precision { Int8 => "int8", Fp32 => "fp32" });
 
-impl GradNetPrecision {
-    /// The embedded model for a frame with features (`true`) or without.
+/// GradNet's name for [`Precision`] (0.2), kept for callers that use it.
+pub type GradNetPrecision = Precision;
+
+impl Precision {
+    /// GradNet's embedded model for a frame with features (`true`) or without.
     pub fn variant(self, features: bool) -> ModelVariant {
         match (features, self) {
             (false, _) => ModelVariant::NoFeatures,
-            (true, GradNetPrecision::Fp32) => ModelVariant::Full,
-            (true, GradNetPrecision::Int8) => ModelVariant::FullInt8,
+            (true, Precision::Fp32) => ModelVariant::Full,
+            (true, Precision::Int8) => ModelVariant::FullInt8,
         }
     }
 }

@@ -31,15 +31,19 @@ pub enum ModelVariant {
     FullInt8,
     /// `combiner.onnx`: the combiner's network (`onnx/gdrecon_py/combiner.py`), not a GradNet.
     Combiner,
+    /// `combiner_int8.onnx`: [`ModelVariant::Combiner`] quantised to int8 (QDQ; its first and
+    /// last convolutions kept in fp32), calibrated on the training split.
+    CombinerInt8,
 }
 
 impl ModelVariant {
     /// Every model this build knows.
-    pub const ALL: [ModelVariant; 4] = [
+    pub const ALL: [ModelVariant; 5] = [
         ModelVariant::Full,
         ModelVariant::NoFeatures,
         ModelVariant::FullInt8,
         ModelVariant::Combiner,
+        ModelVariant::CombinerInt8,
     ];
 }
 
@@ -51,15 +55,16 @@ impl ModelVariant {
             ModelVariant::NoFeatures => "gradnet_nofeat.onnx",
             ModelVariant::FullInt8 => "gradnet_int8.onnx",
             ModelVariant::Combiner => "combiner.onnx",
+            ModelVariant::CombinerInt8 => "combiner_int8.onnx",
         }
     }
 
-    /// Channels of the first input: GradNet's data branch, the combiner's stacked layers.
+    /// Channels of the first input: GradNet's data branch, the combiner's features.
     pub fn data_channels(self) -> usize {
         match self {
             ModelVariant::Full | ModelVariant::FullInt8 => 8,
             ModelVariant::NoFeatures => 1,
-            ModelVariant::Combiner => 27,
+            ModelVariant::Combiner | ModelVariant::CombinerInt8 => 21,
         }
     }
 
@@ -70,6 +75,9 @@ impl ModelVariant {
             ModelVariant::NoFeatures => include_str!("../../../onnx/gradnet_nofeat.onnx.sha256"),
             ModelVariant::FullInt8 => include_str!("../../../onnx/gradnet_int8.onnx.sha256"),
             ModelVariant::Combiner => include_str!("../../../onnx/combiner.onnx.sha256"),
+            ModelVariant::CombinerInt8 => {
+                include_str!("../../../onnx/combiner_int8.onnx.sha256")
+            }
         };
         line.split_whitespace().next().unwrap_or_default()
     }
@@ -111,6 +119,7 @@ pub(crate) fn embedded(variant: ModelVariant) -> Result<ModelBytes> {
             ModelVariant::NoFeatures => include_bytes!("../../../onnx/gradnet_nofeat.onnx"),
             ModelVariant::FullInt8 => include_bytes!("../../../onnx/gradnet_int8.onnx"),
             ModelVariant::Combiner => include_bytes!("../../../onnx/combiner.onnx"),
+            ModelVariant::CombinerInt8 => include_bytes!("../../../onnx/combiner_int8.onnx"),
         };
         let origin = format!("embedded {}", variant.file_name());
         checked(Cow::Borrowed(bytes), variant.recorded_sha256(), origin)

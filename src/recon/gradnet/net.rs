@@ -110,16 +110,17 @@ pub(crate) fn cancellable<T>(
     result
 }
 
-/// The graph's `output` tensor in the shape `shape` makes of its dimensions (`(H, W)` for one
-/// GradNet item), or an error naming what is wrong (`what`: whose inference it was).
+/// The graph's output tensor `name` in the shape `shape` makes of its dimensions (`(H, W)` for
+/// one GradNet item), or an error naming what is wrong (`what`: whose inference it was).
 pub(crate) fn output<'a, E: ndarray::ShapeArg>(
     outputs: &'a SessionOutputs<'_>,
+    name: &str,
     what: &str,
     shape: impl FnOnce(&[usize]) -> E,
 ) -> Result<ndarray::ArrayView<'a, f32, E::Dim>> {
     let out = outputs
-        .get("output")
-        .ok_or_else(|| Error::Runtime(format!("{what}: the graph returned no `output`")))?
+        .get(name)
+        .ok_or_else(|| Error::Runtime(format!("{what}: the graph returned no `{name}`")))?
         .try_extract_array::<f32>()
         .map_err(|e| Error::Runtime(format!("{what} failed: {e}")))?;
     let dims = out.shape().to_vec();
@@ -199,7 +200,9 @@ impl Net {
             let outputs = session
                 .run_with_options(ort::inputs!["data" => data, "grad" => grad], options)
                 .map_err(fail)?;
-            consume(output(&outputs, "GradNet inference", |d| (d[2], d[3]))?);
+            consume(output(&outputs, "output", "GradNet inference", |d| {
+                (d[2], d[3])
+            })?);
             Ok(())
         })
     }
