@@ -378,10 +378,11 @@ mod enabled {
         x / (1.0 + x.abs())
     }
 
-    /// Fills `input` (1 x 21 x th x tw) with the features of tile `tile` of `sources` (9 images
-    /// of 3 channels, [`INPUTS`](super::INPUTS) order) as `combiner.py`'s `features` computes them on the
-    /// frame padded by repeating its last row and column: pixels beyond the frame take the
-    /// last row's and column's features, whose forward differences are 0 in both.
+    /// Fills `input` (1 x 21 x th x tw) with the features of tile `tile` of `sources` (9
+    /// images of 3 channels, [`INPUTS`](super::INPUTS) order) as `combiner.py`'s `features`
+    /// computes them on the frame padded by repeating its last row and column: pixels beyond
+    /// the frame take the last row's and column's features, whose forward differences are 0
+    /// in both.
     // The column index also gives the source column; writing 21 planes at it is clearer than
     // zipping 21 iterators.
     #[allow(clippy::needless_range_loop)]
