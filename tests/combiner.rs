@@ -209,3 +209,17 @@ fn the_cli_runs_it_and_names_its_inputs() {
         assert!(text.contains(part), "{part}: {text}");
     }
 }
+
+/// `weak_steps` reaches the weak candidate's solve, and only it.
+#[test]
+fn weak_steps_sets_the_weak_solves_irls_steps() {
+    let mut config = MethodConfig::Combiner(Default::default());
+    config.set_text("weak_steps", "3").unwrap();
+    let (_, report) = run(&frame("thin_16spp"), &config).unwrap();
+    let notes = report.notes.join("\n");
+    assert!(notes.contains("l1 (weak): IRLS: 3 of 3 steps"), "{notes}");
+    assert!(
+        notes.contains("l1 (strong): IRLS:") && notes.contains("of 12 steps"),
+        "{notes}"
+    );
+}

@@ -47,6 +47,8 @@ pub struct CombinerConfig {
     pub tile_size: usize,
     /// Which embedded graph runs (ignored when [`Self::model`] is given).
     pub precision: Precision,
+    /// IRLS steps of the weak candidate's L1 solve (the strong one's are the `prior` preset's).
+    pub weak_steps: u32,
 }
 
 impl Default for CombinerConfig {
@@ -57,6 +59,7 @@ impl Default for CombinerConfig {
             whole_pixels: 1 << 21,
             tile_size: 512,
             precision: Precision::Int8,
+            weak_steps: PoissonL1Config::prior().reweight_steps,
         }
     }
 }
@@ -109,12 +112,20 @@ impl Params for CombinerConfig {
             |c| c.precision.index(),
             |c, v| c.precision = Precision::ALL[v],
         ),
+        Param::int(
+            "weak_steps",
+            1,
+            1000,
+            "IRLS steps of the weak candidate's L1 solve (the network was trained on 12)",
+            |c| c.weak_steps.into(),
+            |c, v| c.weak_steps = v as u32,
+        ),
     ];
 }
 
 /// The two L1 candidates' settings: the `prior` preset, and the same with the weak weight.
 /// (`alpha` is what a solve run on the prior weights its data term by.)
-fn candidates() -> [PoissonL1Config; 2] {
+fn candidates(config: &CombinerConfig) -> [PoissonL1Config; 2] {
     let strong = PoissonL1Config::prior();
     [
         PoissonL1Config {
@@ -123,6 +134,7 @@ fn candidates() -> [PoissonL1Config; 2] {
         },
         PoissonL1Config {
             alpha: WEAK_ALPHA,
+            reweight_steps: config.weak_steps,
             ..strong
         },
     ]
@@ -162,7 +174,7 @@ impl Register for CombinerConfig {
     /// The prior's share, both L1 solves and their outputs, and the network's run over one
     /// tile (or the whole frame).
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
-        let [strong, weak] = candidates();
+        let [strong, weak] = candidates(self);
         let whole = self.tile_size == 0 || width.saturating_mul(height) <= self.whole_pixels;
         let (tw, th) = if whole {
             (width, height)
@@ -335,7 +347,7 @@ mod enabled {
                 };
                 Ok(Mutex::new(Net::new(&rt.env, &bytes, threads)?))
             })?;
-            let [strong, weak] = candidates();
+            let [strong, weak] = candidates(&config);
             Ok(Combiner {
                 prior: Prior::new(context, width, height, Quality::High),
                 solves: [
