@@ -494,9 +494,10 @@ mod enabled {
                     let top = l.iter().copied().fold(f32::NEG_INFINITY, f32::max);
                     let e = l.map(|v| (v - top).exp());
                     let sum: f32 = e.iter().sum();
+                    let weight = e.map(|v| v / sum);
                     let i = y * w + x;
                     for (c, o) in [&mut r[x], &mut g[x], &mut b[x]].into_iter().enumerate() {
-                        *o = (0..MIXED).map(|k| e[k] / sum * cands[k][c * n + i]).sum();
+                        *o = (0..MIXED).map(|k| weight[k] * cands[k][c * n + i]).sum();
                     }
                 }
             });
