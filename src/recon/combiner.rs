@@ -1,7 +1,8 @@
 //! `combiner`: a small network that weights, per pixel, reconstructions the prior path already
 //! computes: the prior (OIDN's output, or the frame's `prior` layer) and screened Poisson L1 on
 //! the prior with its preset data-term weight (2.5, "strong") and with a weak one (0.5, which
-//! follows the gradients further). It predicts weights, not colours (a softmax over the three
+//! follows the gradients further), both stopped once an IRLS step barely moves the image
+//! ([`STEP_CHANGE`]). It predicts weights, not colours (a softmax over the three
 //! per pixel), so it only decides which estimate to trust where, which generalises from a
 //! small training set (Back et al. 2020 make the same choice for their combiner of independent
 //! and correlated estimates). The base image is one of its inputs, not a candidate: mixed in,
@@ -25,7 +26,7 @@
 use std::path::PathBuf;
 
 use super::gradnet::Precision;
-use super::param::{Param, Params};
+use super::param::{Param, Params, Range};
 use super::poisson_l1::{l1_memory, PoissonL1Config};
 use super::prior::prior_memory;
 use super::{bytes_for, Reconstructor, Register, MIB};
@@ -49,6 +50,9 @@ pub struct CombinerConfig {
     pub precision: Precision,
     /// IRLS steps of the weak candidate's L1 solve (the strong one's are the `prior` preset's).
     pub weak_steps: u32,
+    /// Both candidates' IRLS stops once a step moves the image by less than this (their
+    /// `step_change`); 0 runs every step.
+    pub step_change: f32,
 }
 
 impl Default for CombinerConfig {
@@ -60,6 +64,7 @@ impl Default for CombinerConfig {
             tile_size: 512,
             precision: Precision::Int8,
             weak_steps: PoissonL1Config::prior().reweight_steps,
+            step_change: STEP_CHANGE,
         }
     }
 }
@@ -72,6 +77,16 @@ pub const INPUTS: [&str; 9] = [
 
 /// Data-term weight of the weak candidate (the strong one is l1's `prior` preset's).
 const WEAK_ALPHA: f32 = 0.5;
+
+/// Default `step_change`: the candidates' IRLS (12 steps, as the network was trained on) stops
+/// once a step at the regularisation's floor moves the image by less than 1e-3 in the error
+/// metric's units. Chosen on validation among 3e-4, 1e-3 and 3e-3 (the largest within 0.5 %
+/// of every step run in each geometric mean and 2 % on every frame: 1.012 at worst); on test
+/// within 0.3 % on every frame. At 720p both solves stop at 7 steps (9 and 12 without it), and
+/// everything after the prior takes about 0.83x OIDN's time instead of 1.03x
+/// (`docs/benchmarks.md`, eighteenth session). A fixed 8 steps for the weak solve was as fast
+/// but cost 32 % on one test frame (lamps, 4 spp), where IRLS is still moving at step 8.
+pub const STEP_CHANGE: f32 = 1e-3;
 
 /// Bytes a pixel of a tile costs in the network run (the input and ONNX Runtime's
 /// activations), and the run's fixed share, measured with 0.2's whole fp32 graph (27 planes
@@ -121,6 +136,14 @@ impl Params for CombinerConfig {
             |c| c.weak_steps.into(),
             |c, v| c.weak_steps = v as u32,
         ),
+        Param::float(
+            "step_change",
+            Range::below(0.0, 1.0),
+            "Both candidates' IRLS stops once a step moves the image by less than this (l1's \
+             step_change); 0 runs every step",
+            |c| c.step_change,
+            |c, v| c.step_change = v,
+        ),
     ];
 }
 
@@ -131,11 +154,13 @@ fn candidates(config: &CombinerConfig) -> [PoissonL1Config; 2] {
     [
         PoissonL1Config {
             alpha: strong.prior_alpha,
+            step_change: config.step_change,
             ..strong
         },
         PoissonL1Config {
             alpha: WEAK_ALPHA,
             reweight_steps: config.weak_steps,
+            step_change: config.step_change,
             ..strong
         },
     ]
