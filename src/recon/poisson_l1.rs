@@ -965,6 +965,18 @@ mod tests {
     use super::*;
     use crate::synth::synthetic_frame;
 
+    /// One 96 x 64 solve of `frame` (`skip`: the fixed-point rule); its output and notes.
+    fn solve(config: PoissonL1Config, frame: &Frame, skip: bool) -> (Image, String) {
+        let mut solve = PoissonL1::new(config, 96, 64).unwrap();
+        solve.skip_repeats = skip;
+        let mut out = Image::zeros(3, 96, 64);
+        let mut report = Report::default();
+        solve
+            .reconstruct_into(frame, &mut out, &mut report, &Progress::none())
+            .unwrap();
+        (out, report.notes.join("; "))
+    }
+
     /// The steps skipped after a fixed point are the ones that would have changed nothing:
     /// running them gives the same bits. On this frame the prior path's tolerance (1e-4) and
     /// weight (2.5), on a frame anchored to a clean image, leave a late step with no CG
@@ -979,16 +991,7 @@ mod tests {
             alpha: DEFAULT_PRIOR_ALPHA_L1,
             ..PoissonL1Config::prior()
         };
-        let run = |skip: bool| {
-            let mut solve = PoissonL1::new(config, 96, 64).unwrap();
-            solve.skip_repeats = skip;
-            let mut out = Image::zeros(3, 96, 64);
-            let mut report = Report::default();
-            solve
-                .reconstruct_into(&frame, &mut out, &mut report, &Progress::none())
-                .unwrap();
-            (out, report.notes.join("; "))
-        };
+        let run = |skip: bool| solve(config, &frame, skip);
         let (skipped, note) = run(true);
         let (all, all_note) = run(false);
         assert!(note.contains("skipped"), "no step was skipped: {note}");
@@ -1011,13 +1014,7 @@ mod tests {
                 step_change,
                 ..PoissonL1Config::prior()
             };
-            let mut solve = PoissonL1::new(config, 96, 64).unwrap();
-            let mut out = Image::zeros(3, 96, 64);
-            let mut report = Report::default();
-            solve
-                .reconstruct_into(&frame, &mut out, &mut report, &Progress::none())
-                .unwrap();
-            (out, report.notes.join("; "))
+            solve(config, &frame, true)
         };
         let (_, note) = run(0.9);
         assert!(note.contains("IRLS: 5 of 12 steps (step 4 moved"), "{note}");
