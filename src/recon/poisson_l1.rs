@@ -727,26 +727,19 @@ impl PoissonL1 {
             });
     }
 
-    /// How far the last step moved the image, like `cg_change` (the largest channel's root
-    /// mean square of `(x - before) / sqrt(x^2 + 0.01)`), and `before = x` for the next step.
+    /// How far the step moved the image from `before`, like `cg_change`: the largest
+    /// channel's root mean square of `(x - before) / sqrt(x^2 + 0.01)`.
     fn step_moved(&mut self) -> f64 {
-        let w = self.dims.w;
-        self.x
-            .par_chunks(w)
-            .zip(self.before.par_chunks_mut(w))
-            .map(|(x, before)| {
-                let mut sum = 0.0f32;
-                for (&x, b) in x.iter().zip(before.iter_mut()) {
-                    let d = x - *b;
-                    sum += d * d / (x * x + 0.01);
-                    *b = x;
-                }
-                f64::from(sum)
-            })
-            .collect_into_vec(&mut self.partials);
-        let n = self.dims.len() as f64;
-        let largest = per_channel(&self.partials).into_iter().fold(0.0, f64::max);
-        (largest / n).sqrt()
+        let n = self.dims.len();
+        let sums = plane_sums(
+            &self.x,
+            &self.before,
+            self.dims.w,
+            n,
+            &mut self.partials,
+            |x, b| f64::from((x - b) * (x - b) / (x * x + 0.01)),
+        );
+        (sums.into_iter().fold(0.0, f64::max) / n as f64).sqrt()
     }
 
     /// Preconditioned CG on the current weighted system, warm-started from `x`, with
@@ -841,9 +834,6 @@ impl Reconstructor for PoissonL1 {
     ) -> Result<()> {
         let steps = self.cfg.reweight_steps;
         self.x.copy_from_slice(frame.color().as_slice());
-        if self.cfg.step_change > 0.0 {
-            self.before.copy_from_slice(&self.x);
-        }
         self.reset_weights();
         let (mut total_iters, mut last_rel) = (0u32, 0.0f64);
         let (mut reweight_time, mut cg_time) = (Duration::ZERO, Duration::ZERO);
@@ -891,21 +881,25 @@ impl Reconstructor for PoissonL1 {
                 self.x.copy_from_slice(&self.b);
                 dct.solve(&mut self.x);
             }
+            // Once the regularisation is at its floor, the weights only follow the image: a
+            // step that barely moves it leaves the next step's weights barely changed, and
+            // IRLS may stop after it (not after the last step, which ends anyway).
+            let may_settle = self.cfg.step_change > 0.0
+                && step >= 1
+                && step + 1 < steps
+                && self.reg(step + 1) == self.reg(step);
+            if may_settle {
+                self.before.copy_from_slice(&self.x);
+            }
             let outcome = self.cg(bb, &at)?;
             cg_time += t1.elapsed();
             total_iters += outcome.iterations;
             last_iterations = Some(outcome.iterations);
             last_rel = outcome.rel_residual;
             capped += u32::from(outcome.capped);
-            // Once the regularisation is at its floor, the weights only follow the image: a
-            // step that barely moved it leaves the next step's weights barely changed.
-            if self.cfg.step_change > 0.0 {
+            if may_settle {
                 let moved = self.step_moved();
-                if step >= 1
-                    && step + 1 < steps
-                    && self.reg(step + 1) == self.reg(step)
-                    && moved <= f64::from(self.cfg.step_change)
-                {
+                if moved <= f64::from(self.cfg.step_change) {
                     ran = step + 1;
                     settled = Some(moved);
                     break;
