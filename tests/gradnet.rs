@@ -4,7 +4,7 @@
 //!
 //! Needs ONNX Runtime 1.31 (found by the library's discovery: `bash onnx/setup.sh` installs
 //! it). Tolerances: the pipeline matches Python to 1e-4 relative (|a - b| <= 1e-4 (|b| + 1e-3)),
-//! in fp32 against the torch model, in int8 (the default precision) against onnxruntime in
+//! in fp32 (the default precision) against the torch model, in int8 against onnxruntime in
 //! Python running `onnx/gradnet_int8.onnx` (the same kernels, so the same bound holds);
 //! tiled matches untiled to the same bound.
 #![cfg(all(feature = "gradnet", feature = "embed-model"))]
@@ -62,10 +62,17 @@ fn pipeline() -> GradNetConfig {
     c
 }
 
-/// The fp32 graph, which the torch fixtures hold.
+/// The fp32 graph, which the torch fixtures hold (the default, named where a test relies on it).
 fn fp32() -> GradNetConfig {
     let mut c = pipeline();
     c.precision = GradNetPrecision::Fp32;
+    c
+}
+
+/// The int8 graph (`precision=int8`).
+fn int8() -> GradNetConfig {
+    let mut c = pipeline();
+    c.precision = GradNetPrecision::Int8;
     c
 }
 
@@ -113,14 +120,14 @@ fn pipeline_matches_the_python_reference() {
     }
 }
 
-/// The default precision, int8, against `pipeline.reconstruct` with onnxruntime running
+/// `precision=int8` against `pipeline.reconstruct` with onnxruntime running
 /// `onnx/gradnet_int8.onnx` in Python (`make_fixtures --int8`); and how far int8 is from the
 /// fp32 pipeline on these crops (printed; docs/gradnet.md, "Reduced precision").
 #[test]
 fn int8_pipeline_matches_onnxruntime_in_python() {
     for name in ["crop_a", "crop_b"] {
         let frame = crop(name);
-        let int8 = run(&frame, pipeline()).unwrap();
+        let int8 = run(&frame, int8()).unwrap();
         assert_close(&int8, &expected(&format!("{name}_int8_out.npy")), name);
         let fp = run(&frame, fp32()).unwrap();
         let d = gdrecon::metrics::compare(&int8, &fp).unwrap().rel_mse;
@@ -132,7 +139,9 @@ fn int8_pipeline_matches_onnxruntime_in_python() {
 /// The emitter rule (`range_limit`, the pipeline's step 6b) on a frame with bulbs in view
 /// (the `lamps` guard frame; fixture from `make_fixtures --emitter`, onnxruntime): the same
 /// pixels keep their base colour before the bias correction, so the output matches the Python
-/// reference; without the rule it does not, and its error is far larger.
+/// reference; without the rule it does not, and its error is larger: 2.2x with the model trained
+/// on HDR frames under exposure augmentation (nineteenth session; the CPU-trained model's was
+/// over 10x), hence the bar of 1.5x.
 #[test]
 fn emitter_rule_matches_the_python_reference() {
     let frame = crop("emitter");
@@ -150,7 +159,7 @@ fn emitter_rule_matches_the_python_reference() {
             .rel_mse,
     );
     assert!(
-        no_rule > 10.0 * with_rule,
+        no_rule > 1.5 * with_rule,
         "release {no_rule:e}, rule {with_rule:e}"
     );
 }
@@ -184,7 +193,7 @@ fn plans_reuse_the_context_session_and_report_what_ran() {
     assert!(report
         .notes
         .iter()
-        .any(|n| n.contains("embedded gradnet_int8.onnx")));
+        .any(|n| n.contains("embedded gradnet.onnx")));
     let mut b = Plan::new(&ctx, &config, frame.width(), frame.height()).unwrap();
     let (second, _) = b.execute(&frame, &Progress::none()).unwrap();
     assert_eq!(

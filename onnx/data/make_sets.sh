@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Render gdrecon's validation, test and training sets (outside the repository; never committed).
 #
-#   bash onnx/data/make_sets.sh [val|test|train|all]      (default: val then test)
+#   bash onnx/data/make_sets.sh [val|test|train|gradnet|all]      (default: val then test)
 #
 # Needs `bash onnx/setup.sh` (the venv, with the gdrecon_py package that renders).
 # Environment: GDRECON_DATA (default $HOME/.cache/gdrecon/data), GDRECON_VENV (see setup.sh),
@@ -19,6 +19,8 @@
 #           render seed 30000 (never used to choose anything)
 #   train = perturbed variants of atrium night shelf garden vitrine only (perturbation family
 #           seed 1, indices 0..11), render seed 40000, in $TRAIN_DIR.
+#   gradnet = GradNet's training set: perturbations 12..97 of the same families, one spp per
+#           view, 144x144, no references, in $GRADNET_DIR (default $GDRECON_DATA/train3).
 # The retired training set ($GDRECON_DATA/train: perturbations of the six original validation
 # families, perturbation seed 0, render seed 1000) trained the existing GradNet checkpoint and is
 # not used for new training.
@@ -51,4 +53,13 @@ if [ "$what" = train ] || [ "$what" = all ]; then
   time render --scene train --size 256x256 --spp 4,16,64 \
       --perturb "${TRAIN_PERTURB:-0:12}" --perturb-seed 1 --ref-spp "${TRAIN_REF_SPP:-1024}" \
       --seed 40000 --out "$dir" --skip-existing
+fi
+if [ "$what" = gradnet ] || [ "$what" = all ]; then
+  dir="${GRADNET_DIR:-$root/train3}"
+  echo "# GradNet's training set -> $dir"
+  for sp in 4:12:28 16:28:44 64:44:60 32:60:72 8:72:84 16:84:98; do
+    IFS=: read -r spp a b <<<"$sp"
+    time render --scene train --size 144x144 --spp "$spp" --perturb "$a:$b" --perturb-seed 1 \
+        --ref-spp 0 --seed 40000 --out "$dir" --skip-existing
+  done
 fi

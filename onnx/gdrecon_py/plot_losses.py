@@ -5,6 +5,13 @@ Pillow (matplotlib is not in the project's environment).
 
 One panel per loss (L_grad, L_data, L_1st, total, L' of the G-branch); per-step values in light
 colour, the moving average over 20 steps in full colour; one colour per run.
+
+    $GDRECON_PYTHON -m gdrecon_py.plot_losses RUN_DIR --curve -o docs/gradnet_curve.png \
+        --ref 4=0.0182,16=0.00452,64=0.00156
+
+`--curve` (runs of gdrecon_py/train_gradnet.py, which validate after every epoch): the validation
+relMSE (geometric mean over the frames of each spp) against the epoch, log y, one colour per spp,
+with `--ref` levels (L1's geometric means, say) as thin lines of the same colour.
 """
 import argparse
 import json
@@ -38,7 +45,7 @@ def smooth(v, n=20):
     return out
 
 
-def panel(draw, box, title, series, log_y=True):
+def panel(draw, box, title, series, log_y=True, smooth_n=20, xlabel="steps"):
     x0, y0, x1, y1 = box
     draw.rectangle(box, outline=(0, 0, 0))
     draw.text((x0 + 6, y0 + 4), title, fill=(0, 0, 0))
@@ -64,13 +71,36 @@ def panel(draw, box, title, series, log_y=True):
         yy = y1 - 20 - (y1 - y0 - 40) * k / 4
         draw.line([(x0 + 38, yy), (x1 - 8, yy)], fill=(225, 225, 225))
         draw.text((x0 + 2, yy - 6), lab, fill=(80, 80, 80))
-    draw.text((x1 - 90, y1 - 16), f"steps (0..{n - 1})", fill=(80, 80, 80))
+    draw.text((x1 - 90, y1 - 16), f"{xlabel} (0..{n - 1})", fill=(80, 80, 80))
     for color, ys in series:
         light = tuple(int(c + (255 - c) * 0.7) for c in color)
         pts = [(tx(i), ty(v)) for i, v in enumerate(ys)]
         if len(pts) > 1:
             draw.line(pts, fill=light, width=1)
-            draw.line([(tx(i), ty(v)) for i, v in enumerate(smooth(ys))], fill=color, width=2)
+            draw.line([(tx(i), ty(v)) for i, v in enumerate(smooth(ys, smooth_n))], fill=color, width=2)
+
+
+def curve(run, out, refs):
+    rows = [json.loads(line) for line in open(os.path.join(run, "log.jsonl"))]
+    ep = [r for r in rows if r.get("kind") == "epoch" and "val" in r]
+    spps = sorted({float(k) for r in ep for k in r["val_by_spp"]})
+    W, H = 900, 560
+    img = Image.new("RGB", (W, H), (255, 255, 255))
+    d = ImageDraw.Draw(img)
+    box = (10, 40, W - 10, H - 10)
+    series = [(COLORS[i % 4], [r["val_by_spp"][k] for r in ep for k in r["val_by_spp"] if float(k) == s])
+              for i, s in enumerate(spps)]
+    flat = [(tuple(int(v + (255 - v) * 0.6) for v in c), [refs[s]] * len(ys))
+            for (c, ys), s in zip(series, spps) if s in refs]
+    panel(d, box, "validation relMSE, geometric mean per spp, after each epoch (light: --ref levels)",
+          series + flat, smooth_n=1, xlabel="epochs")
+    x = 10
+    for i, s in enumerate(spps):
+        d.rectangle([x, 14, x + 14, 26], fill=COLORS[i % 4])
+        d.text((x + 20, 14), f"{s:g} spp", fill=(0, 0, 0))
+        x += 90
+    img.save(out)
+    print(f"wrote {out}")
 
 
 def main(argv=None):
@@ -78,7 +108,13 @@ def main(argv=None):
     ap.add_argument("runs", nargs="+")
     ap.add_argument("-o", "--out", required=True)
     ap.add_argument("--labels", help="comma-separated legend labels")
+    ap.add_argument("--curve", action="store_true", help="validation curve of one train_gradnet run")
+    ap.add_argument("--ref", default="", help="spp=relMSE,... levels drawn with --curve")
     args = ap.parse_args(argv)
+    if args.curve:
+        refs = {float(k): float(v) for k, v in (kv.split("=") for kv in args.ref.split(",") if kv)}
+        curve(args.runs[0], args.out, refs)
+        return
     data = [load(r) for r in args.runs]
     labels = args.labels.split(",") if args.labels else [os.path.basename(r.rstrip("/")) for r in args.runs]
     W, H = 1200, 760
