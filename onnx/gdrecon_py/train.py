@@ -97,7 +97,12 @@ def sample_batch(arr, rng, batch, patch):
     ys = rng.integers(0, H - patch + 1, batch)
     xs = rng.integers(0, W - patch + 1, batch)
     b = np.stack([arr[i, :, y:y + patch, x:x + patch] for i, y, x in zip(idx, ys, xs)])
-    b = torch.from_numpy(np.ascontiguousarray(b))
+    return split_batch(torch.from_numpy(np.ascontiguousarray(b)))
+
+
+def split_batch(b):
+    """B x 16 x P x P crops (colour, dx, dy, features) -> (data, grad, lin, dxc, dyc, featc), one
+    item per colour channel: the network's inputs and what the losses compare against."""
     color, dx, dy, feat = b[:, 0:3], b[:, 3:6], b[:, 6:9], b[:, 9:16]
     B, _, h, w = color.shape
     lin = color.reshape(B * 3, 1, h, w)

@@ -48,7 +48,7 @@ import torch
 from . import gradnet as gn
 from . import pack
 from .metrics import relmse
-from .train import lambda_f
+from .train import lambda_f, split_batch
 
 G_RATIO = 25 / 80   # G-branch steps per main step, as train.py
 
@@ -121,18 +121,6 @@ def dihedral_apply(x, code):
         if bool(m.any()):
             out[m] = f(out[m])
     return out
-
-
-def split_batch(x):
-    """B x 16 x P x P -> (data, grad, lin, dxc, dyc, featc) per colour channel item, as train.py."""
-    color, dx, dy, feat = x[:, 0:3], x[:, 3:6], x[:, 6:9], x[:, 9:16]
-    B, _, h, w = color.shape
-    lin = color.reshape(B * 3, 1, h, w)
-    dxc = dx.reshape(B * 3, 1, h, w)
-    dyc = dy.reshape(B * 3, 1, h, w)
-    featc = feat.unsqueeze(1).expand(B, 3, 7, h, w).reshape(B * 3, 7, h, w)
-    data, grad = gn.make_inputs(color, dx, dy, feat)
-    return data, grad, lin, dxc, dyc, featc
 
 
 # ------------------------------------------------------------------------------------------
