@@ -211,12 +211,15 @@ def reconstruct(frame, run, use_features=None, correct_bias=True, range_limit=EM
     return out
 
 
-def torch_runner(model):
+def torch_runner(model, device="cpu"):
+    """A torch model as `run`; `device` is where the model lives (inputs go there, the output
+    comes back to the CPU as float32)."""
     import torch
 
     def run(data, grad):
         with torch.no_grad():
-            return model(torch.from_numpy(data), torch.from_numpy(grad)).numpy()
+            y = model(torch.from_numpy(data).to(device), torch.from_numpy(grad).to(device))
+            return y.float().cpu().numpy()
     run.data_channels = model.data_ch
     return run
 

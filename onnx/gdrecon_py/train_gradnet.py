@@ -35,10 +35,10 @@ Differences from train.py, each named with why:
     the device machine takes a command for at most 10 minutes.
 """
 import argparse
-import copy
 import json
 import math
 import os
+import shutil
 import sys
 import time
 
@@ -129,11 +129,7 @@ def dihedral_apply(x, code):
 def validate(net, frames, device):
     from . import pipeline as pl
     net.eval()
-
-    def run(data, grad):
-        with torch.no_grad():
-            return net(torch.from_numpy(data).to(device), torch.from_numpy(grad).to(device)).float().cpu().numpy()
-    run.data_channels = net.data_ch
+    run = pl.torch_runner(net, device)
     rows = []
     for meta, fr in frames:
         out = pl.reconstruct(fr, run)
@@ -450,9 +446,7 @@ def main(argv=None):
         if os.path.exists(bp) and best and best["epoch"] != ck["epoch"]:
             save_parts(torch.load(bp, map_location="cpu", weights_only=False), os.path.join(args.export, "best"))
         for name in ("log.jsonl", "args.json"):
-            src = os.path.join(args.out, name)
-            with open(src, "rb") as f, open(os.path.join(args.export, name), "wb") as g:
-                g.write(f.read())
+            shutil.copyfile(os.path.join(args.out, name), os.path.join(args.export, name))
         print(f"exported to {args.export} ({time.time() - t_start:.0f} s after the start)", flush=True)
 
 
