@@ -58,6 +58,7 @@ fn sweep_writes_every_report_file() {
         ("l2", "default", true),
         ("l2", "data=prior", prior),
         ("l1", "default", true),
+        ("l1", "step_change=0", true),
         ("l1", "fast", true),
         ("l1", "reweight_steps=5", true),
         ("l1", "published", true),
