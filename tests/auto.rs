@@ -1,7 +1,7 @@
 //! `auto` picks per frame and says why: the L1 prior path when a prior is given or Open Image
 //! Denoise loads (tests/prior.rs); without it (`use_prior` false here, so that OIDN's presence
-//! does not matter) FRGR (`frgr`) when the spp is known, GradNet when it is not, L1 when
-//! GradNet cannot run.
+//! does not matter) GradNet whenever it can run, else FRGR (`frgr`) when the spp is known,
+//! else L1.
 
 use std::path::Path;
 
@@ -45,52 +45,69 @@ fn note(report: &Report) -> &str {
         .expect("auto says why")
 }
 
-#[test]
-fn known_spp_runs_frgr() {
-    let frame = sample();
-    assert!(frame.spp().is_some());
-    let report = run(&frame, no_prior());
-    assert_eq!(report.method, "auto -> frgr");
-    assert!(note(&report).contains("no prior (use_prior is false)"));
-    assert!(note(&report).contains("is known"), "{}", note(&report));
+/// A model path that does not exist: GradNet cannot run.
+fn without_gradnet() -> AutoConfig {
+    let mut config = no_prior();
+    config.gradnet.model = Some("/nonexistent/gradnet.onnx".into());
+    config
 }
 
 #[test]
-fn unknown_spp_runs_gradnet_or_falls_back_to_l1_with_the_reason() {
-    let frame = sample()
+fn gradnet_runs_whatever_the_spp() {
+    if !cfg!(feature = "gradnet") {
+        return;
+    }
+    let known = sample();
+    assert!(known.spp().is_some());
+    let unknown = sample()
         .into_builder()
         .spp(None)
         .build(Policy::Replace)
         .unwrap();
-    if cfg!(feature = "gradnet") {
+    for frame in [known, unknown] {
         let report = run(&frame, no_prior());
         assert_eq!(report.method, "auto -> gradnet", "{:?}", report.notes);
-        assert!(note(&report).contains("with features"));
+        assert!(note(&report).contains("no prior (use_prior is false)"));
+        assert!(note(&report).contains("with features"), "{}", note(&report));
     }
-    let mut config = no_prior();
-    config.gradnet.model = Some("/nonexistent/gradnet.onnx".into());
-    let report = run(&frame, config);
+}
+
+#[test]
+fn without_gradnet_known_spp_runs_frgr_and_unknown_runs_l1_with_the_reason() {
+    let frame = sample();
+    let report = run(&frame, without_gradnet());
+    assert_eq!(report.method, "auto -> frgr", "{:?}", report.notes);
+    let why = note(&report);
+    assert!(
+        why.contains("GradNet cannot run") && why.contains("is known"),
+        "{why}"
+    );
+
+    let frame = frame
+        .into_builder()
+        .spp(None)
+        .build(Policy::Replace)
+        .unwrap();
+    let report = run(&frame, without_gradnet());
     assert_eq!(report.method, "auto -> l1");
     let why = note(&report);
-    assert!(why.contains("GradNet cannot run"), "{why}");
+    assert!(
+        why.contains("GradNet cannot run") && why.contains("spp unknown"),
+        "{why}"
+    );
 }
 
 /// `fallback` false: a frame whose preferred path cannot run here is an error naming why, not
 /// another method's image (one frame, one image on every machine).
 #[test]
 fn without_fallback_a_missing_path_is_an_error() {
-    let unknown_spp = sample()
-        .into_builder()
-        .spp(None)
-        .build(Policy::Replace)
-        .unwrap();
-    let mut config = no_prior();
-    config.gradnet.model = Some("/nonexistent/gradnet.onnx".into());
+    let frame = sample();
+    let mut config = without_gradnet();
     config.fallback = false;
     let ctx = Context::new(ContextOptions::with_threads(Some(2))).unwrap();
-    let (w, h) = unknown_spp.size();
+    let (w, h) = frame.size();
     let mut plan = Plan::new(&ctx, &MethodConfig::Auto(config.clone()), w, h).unwrap();
-    let e = plan.execute(&unknown_spp, &Progress::none()).unwrap_err();
+    let e = plan.execute(&frame, &Progress::none()).unwrap_err();
     assert!(
         e.to_string().contains("GradNet cannot run here")
             && e.to_string().contains("fallback is false"),
@@ -103,7 +120,6 @@ fn without_fallback_a_missing_path_is_an_error() {
     .unwrap();
     let mut config = AutoConfig::default();
     config.fallback = false;
-    let frame = sample();
     let mut plan = Plan::new(&ctx, &MethodConfig::Auto(config.clone()), w, h).unwrap();
     let e = plan.execute(&frame, &Progress::none()).unwrap_err();
     assert!(
@@ -114,5 +130,10 @@ fn without_fallback_a_missing_path_is_an_error() {
     config.fallback = true;
     let mut plan = Plan::new(&ctx, &MethodConfig::Auto(config), w, h).unwrap();
     let (_, report) = plan.execute(&frame, &Progress::none()).unwrap();
-    assert_eq!(report.method, "auto -> frgr");
+    let expected = if cfg!(feature = "gradnet") {
+        "auto -> gradnet"
+    } else {
+        "auto -> frgr"
+    };
+    assert_eq!(report.method, expected, "{:?}", report.notes);
 }

@@ -9,15 +9,15 @@
 //!    on test, but loses to the prior by 7 % on the validation `glass` frames (4 and 64 spp),
 //!    so it is not the default yet (`docs/benchmarks.md`, "Sixteenth session: the combiner").
 //!    Why the combiner or OIDN could not run is part of the note when it falls through.
-//! 1. **spp known → `frgr`** (RDFC guide). It has the lowest geometric-mean relMSE at 4 and
-//!    16 spp and is within 6 % of the best (the same method with an L1 guide) at 64 spp, and it
-//!    is the only method that is never far off on any scene (caustics included). A missing
-//!    variance layer is estimated by FRGR itself (3 x 3 colour statistics; noted).
-//! 2. **spp unknown → `gradnet`**, which needs no sample count: on the validation set it is 0.54x
-//!    L1 at 4 spp and on par at 16 spp. The frame's features decide the model (with or without
-//!    the feature branch).
-//! 3. **GradNet unavailable** (built without it, or ONNX Runtime not found) **→ `l1`**, the most
-//!    robust of the remaining methods; the reason GradNet could not run is part of the note.
+//! 1. **no prior → `gradnet`** when ONNX Runtime and the model load. The GPU-trained model
+//!    (nineteenth session) is 0.72 / 0.53 / 0.75x FRGR's relMSE at 4 / 16 / 64 spp on the
+//!    validation split (geometric mean; 0.50 / 0.53 / 0.64 on test) and needs no sample
+//!    count. The frame's features decide the model (with or without the feature branch).
+//! 2. **GradNet unavailable** (built without it, or ONNX Runtime or the model not found) **→
+//!    `frgr`** (RDFC guide) when the spp is known: the best method without a runtime. A
+//!    missing variance layer is estimated by FRGR itself (3 x 3 colour statistics; noted).
+//! 3. **neither → `l1`**, the most robust of the remaining methods. Why GradNet could not run
+//!    is part of the note.
 //!
 //! The chosen method is planned on the first frame that needs it and kept: a sequence of
 //! frames of one kind plans once. The report names the method that ran (`auto -> l1 (prior)`)
@@ -41,9 +41,9 @@ use crate::report::Report;
 #[derive(Clone, Debug, PartialEq)]
 #[non_exhaustive]
 pub struct AutoConfig {
-    /// Used when the frame has its spp.
+    /// Used without a prior, when GradNet cannot run and the frame has its spp.
     pub frgr: FrgrConfig,
-    /// Used when it has not, if GradNet can run.
+    /// Used without a prior, when it can run.
     pub gradnet: GradNetConfig,
     /// The fallback.
     pub l1: PoissonL1Config,
@@ -139,34 +139,39 @@ impl AutoConfig {
         combiner
     }
 
-    /// The method `frame` gets, and why (before checking that GradNet can run).
+    /// The method `frame` gets without a prior, and why (before checking that GradNet can
+    /// run: see [`AutoConfig::without_gradnet`]).
     pub fn choose(&self, frame: &Frame) -> (MethodConfig, String) {
+        (
+            MethodConfig::GradNet(self.gradnet.clone()),
+            format!(
+                "gradnet ({} features; 0.53-0.75x frgr's relMSE on the validation split)",
+                if frame.albedo().is_some() && frame.normal().is_some() && frame.depth().is_some() {
+                    "with"
+                } else {
+                    "without"
+                }
+            ),
+        )
+    }
+
+    /// The method `frame` gets when GradNet cannot run, and why.
+    pub fn without_gradnet(&self, frame: &Frame) -> (MethodConfig, String) {
         match frame.spp() {
             Some(spp) => (
                 MethodConfig::Frgr(self.frgr),
                 format!(
-                    "spp {spp} is known: frgr (lowest validation relMSE at 4 and 16 spp, \
-                     within 6 % of the best at 64){}",
+                    "spp {spp} is known: frgr{}",
                     if frame.variance().is_some() {
                         ""
                     } else {
-                        "; no variance layer: frgr estimates it"
+                        " (no variance layer: frgr estimates it)"
                     }
                 ),
             ),
             None => (
-                MethodConfig::GradNet(self.gradnet.clone()),
-                format!(
-                    "spp unknown: gradnet ({} features)",
-                    if frame.albedo().is_some()
-                        && frame.normal().is_some()
-                        && frame.depth().is_some()
-                    {
-                        "with"
-                    } else {
-                        "without"
-                    }
-                ),
+                MethodConfig::PoissonL1(self.l1),
+                "spp unknown: l1".to_owned(),
             ),
         }
     }
@@ -441,29 +446,27 @@ impl Reconstructor for Auto {
             )));
         }
         let (mut choice, mut reason) = self.config.choose(frame);
-        let mut path = if choice.method() == Method::GradNet {
-            "gradnet"
-        } else {
-            "frgr"
-        };
-        if choice.method() == Method::GradNet {
-            if self.gradnet_error.is_none() {
-                if let Err(e) = self.plan(path, &choice) {
-                    self.gradnet_error = Some(e.to_string());
-                }
+        let mut path = "gradnet";
+        if self.gradnet_error.is_none() {
+            if let Err(e) = self.plan(path, &choice) {
+                self.gradnet_error = Some(e.to_string());
             }
-            if let Some(why) = &self.gradnet_error {
-                let first_line = why.lines().next().unwrap_or_default();
-                if !self.config.fallback {
-                    return Err(Error::Unsupported(format!(
-                        "auto: spp unknown and GradNet cannot run here ({first_line}), and \
-                         fallback is false"
-                    )));
-                }
-                reason = format!("spp unknown and GradNet cannot run ({first_line}): l1");
-                choice = MethodConfig::PoissonL1(self.config.l1);
-                path = "l1";
+        }
+        if let Some(why) = &self.gradnet_error {
+            let first_line = why.lines().next().unwrap_or_default();
+            if !self.config.fallback {
+                return Err(Error::Unsupported(format!(
+                    "auto: GradNet cannot run here ({first_line}), and fallback is false"
+                )));
             }
+            let (fallback, because) = self.config.without_gradnet(frame);
+            reason = format!("GradNet cannot run ({first_line}); {because}");
+            path = if fallback.method() == Method::Frgr {
+                "frgr"
+            } else {
+                "l1"
+            };
+            choice = fallback;
         }
         report.note(format!("auto: no prior ({no_prior}); {reason}"));
         report.method = format!("auto -> {}", choice.method());
