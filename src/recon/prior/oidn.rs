@@ -328,7 +328,8 @@ impl Filter {
         })
     }
 
-    /// Makes OIDN's filter object: RT, HDR, the quality, the stop flag as progress monitor.
+    /// Makes OIDN's filter object: RT, HDR, the quality, its scratch memory bounded
+    /// ([`super::OIDN_MAX_MEMORY_MB`]), the stop flag as progress monitor.
     fn create(&mut self) -> Result<()> {
         let api = &self.device.lib.api;
         // SAFETY: the device is live; "RT" is a NUL-terminated filter type.
@@ -344,6 +345,8 @@ impl Filter {
         unsafe {
             (api.set_filter_bool)(handle, c("hdr").as_ptr(), true);
             (api.set_filter_int)(handle, c("quality").as_ptr(), self.quality);
+            let max_memory = super::OIDN_MAX_MEMORY_MB as c_int;
+            (api.set_filter_int)(handle, c("maxMemoryMB").as_ptr(), max_memory);
             (api.set_filter_progress)(handle, Some(keep_going), user);
         }
         self.device.check("configuring the RT filter")
