@@ -4,7 +4,8 @@
 //! 0. **a prior → `l1` on the prior** (preset `prior`), or **the combiner** with `use_combiner`
 //!    (off by default), when the frame has a `prior` layer or Open Image Denoise can be loaded.
 //!    L1 on the prior is 0.80-0.88x OIDN alone on the validation split (geometric mean per
-//!    spp), 2-4x better than every method without a prior. The combiner (which needs ONNX
+//!    spp), better than every method without a prior (the best of them, GradNet, is 1.61 /
+//!    1.02 / 1.06x OIDN at 4 / 16 / 64 spp there). The combiner (which needs ONNX
 //!    Runtime and the frame's variance, albedo and normal) is 0.68-0.79x there and 0.52-0.67x
 //!    on test, but loses to the prior by 7 % on the validation `glass` frames (4 and 64 spp),
 //!    so it is not the default yet (`docs/benchmarks.md`, "Sixteenth session: the combiner").

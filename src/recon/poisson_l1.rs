@@ -429,7 +429,7 @@ pub(crate) struct PoissonL1 {
     /// there, more than in any later step).
     start: Option<DctPoisson>,
     x: Vec<f32>,
-    /// `x` before the current step (empty unless `step_change` is set).
+    /// `x` before the current step (empty unless `step_change` or `cg_relative` is set).
     before: Vec<f32>,
     /// With `cg_relative`: the square of the per-iteration move under which this step's CG
     /// stops (`cg_relative` times the previous step's move), 0 for none.
