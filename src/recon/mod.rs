@@ -200,6 +200,9 @@ macro_rules! registry {
         }
 
         /// A method with its settings.
+        // `auto`'s settings hold every method it may run (about 290 bytes): a configuration is
+        // made once per plan, so its size costs nothing, and boxing it would change the API.
+        #[allow(clippy::large_enum_variant)]
         #[derive(Clone, Debug, PartialEq)]
         #[non_exhaustive]
         pub enum MethodConfig {
