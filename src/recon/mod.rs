@@ -267,9 +267,9 @@ registry! {
     Prior(PriorConfig) = "prior",
         "The prior alone: the frame's 'prior' layer, or Open Image Denoise on the base image";
     Combiner(CombinerConfig) = "combiner",
-        "Learned per-pixel weights over the prior, L1 on the prior (two weights) and the base image, through ONNX Runtime";
+        "Learned per-pixel weights over the prior and L1 on the prior (two data-term weights), through ONNX Runtime";
     Auto(AutoConfig) = "auto",
-        "Picks frgr, gradnet or l1 per frame from its spp and layers, and says why";
+        "Picks per frame and says why: L1 on the prior when a prior is given or OIDN loads, else gradnet, frgr or l1, by what can run here and what the frame carries";
     #[cfg(feature = "testing")]
     Copy(CopyConfig) = "copy",
         "Test-only: the base image scaled by a gain (shows how a method is registered)";
