@@ -23,7 +23,8 @@ const METHODS: [Method; 4] = [
 /// [0, 1]. `auto` takes the L1 prior path when Open Image Denoise loads (as here), and OIDN
 /// spreads the bulbs' energy (radiance up to 424) into the dark wood beside them: the prior
 /// alone is 1.50, 15x the input; without OIDN `auto` picks GradNet (0.0795, under the base),
-/// and FRGR (3.31) only where ONNX Runtime is missing too. Issue "Accurate on scenes it was never tuned on" tracks them.
+/// and FRGR (3.31) only where ONNX Runtime is missing too. Issue "Accurate on scenes it was
+/// never tuned on" tracks them.
 /// GradNet's two failures ended with the GPU-trained model (fp32, the default): `lamps_16spp`
 /// 0.0795 against the base's 0.0996 (0.372 before; 0.177 with `precision=int8`), `thin_16spp`
 /// (sub-pixel wires) 0.0080 against 0.0181 (0.0334 before).

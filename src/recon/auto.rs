@@ -462,11 +462,7 @@ impl Reconstructor for Auto {
             }
             let (fallback, because) = self.config.without_gradnet(frame);
             reason = format!("GradNet cannot run ({first_line}); {because}");
-            path = if fallback.method() == Method::Frgr {
-                "frgr"
-            } else {
-                "l1"
-            };
+            path = fallback.method().name();
             choice = fallback;
         }
         report.note(format!("auto: no prior ({no_prior}); {reason}"));

@@ -431,9 +431,6 @@ pub(crate) struct PoissonL1 {
     x: Vec<f32>,
     /// `x` before the current step (empty unless `step_change` or `cg_relative` is set).
     before: Vec<f32>,
-    /// With `cg_relative`: the square of the per-iteration move under which this step's CG
-    /// stops (`cg_relative` times the previous step's move), 0 for none.
-    relative_floor2: f64,
     r: Vec<f32>,
     z: Vec<f32>,
     p: Vec<f32>,
@@ -484,7 +481,6 @@ impl PoissonL1 {
                 .then(|| DctPoisson::new(dims, config.alpha))
                 .transpose()?,
             x: v3()?,
-            relative_floor2: 0.0,
             before: if config.step_change > 0.0 || config.cg_relative > 0.0 {
                 v3()?
             } else {
@@ -792,13 +788,18 @@ impl PoissonL1 {
     }
 
     /// Preconditioned CG on the current weighted system, warm-started from `x`, with
-    /// per-channel step sizes (three independent systems run in lockstep).
-    fn cg(&mut self, bb: [f64; 3], progress: &dyn Fn(f64) -> Result<()>) -> Result<CgOutcome> {
+    /// per-channel step sizes (three independent systems run in lockstep). It also stops once
+    /// an iteration moves the image by less than `cg_change` or `min_move` (`cg_relative`'s
+    /// share of the previous step's move; 0: none), whichever is larger.
+    fn cg(
+        &mut self,
+        bb: [f64; 3],
+        min_move: f64,
+        progress: &dyn Fn(f64) -> Result<()>,
+    ) -> Result<CgOutcome> {
         let n = self.dims.len();
         let tol2 = f64::from(self.cfg.cg_tolerance).powi(2);
-        let change2 = f64::from(self.cfg.cg_change)
-            .powi(2)
-            .max(self.relative_floor2);
+        let change2 = f64::from(self.cfg.cg_change).max(min_move).powi(2);
         let bb = bb.map(|v| v.max(f64::MIN_POSITIVE));
         let rel = |rr: [f64; 3]| (0..3).map(|c| rr[c] / bb[c]).fold(0.0, f64::max);
         let mut rr = self.residual();
@@ -897,8 +898,7 @@ impl Reconstructor for PoissonL1 {
         let mut settled = None;
         let kappa = f64::from(self.cfg.cg_relative);
         // How far the previous step moved the image (measured from step 1 on).
-        let mut last_move: Option<f64> = None;
-        self.relative_floor2 = 0.0;
+        let mut last_move = 0.0;
         for step in 0..steps {
             // A step whose CG had nothing to do left `x` as its weights found it; when the
             // regularisation has stopped changing too (it is at `reg_floor`), every later step
@@ -943,15 +943,11 @@ impl Reconstructor for PoissonL1 {
                 && step >= 1
                 && step + 1 < steps
                 && self.reg(step + 1) == self.reg(step);
-            let measure = may_settle || (kappa > 0.0 && step >= 1);
+            let measure = may_settle || (kappa > 0.0 && step > 0);
             if measure {
                 self.before.copy_from_slice(&self.x);
             }
-            self.relative_floor2 = match last_move {
-                Some(m) if kappa > 0.0 => (kappa * m).powi(2),
-                _ => 0.0,
-            };
-            let outcome = self.cg(bb, &at)?;
+            let outcome = self.cg(bb, kappa * last_move, &at)?;
             cg_time += t1.elapsed();
             total_iters += outcome.iterations;
             last_iterations = Some(outcome.iterations);
@@ -959,7 +955,7 @@ impl Reconstructor for PoissonL1 {
             capped += u32::from(outcome.capped);
             if measure {
                 let moved = self.step_moved();
-                last_move = Some(moved);
+                last_move = moved;
                 if may_settle && moved <= f64::from(self.cfg.step_change) {
                     ran = step + 1;
                     settled = Some(moved);

@@ -66,8 +66,6 @@ pub(crate) const DATA_DOC: &str = "What the data term anchors to: the base image
 pub(crate) const PRIOR_ALPHA_DOC: &str =
     "Weight of the data term when it is the prior: residual rows are prior_alpha (I - prior)";
 
-/// A planned screened Poisson solve run on the prior instead of the base image: each frame is
-/// handed to it as the prior (its `color`) and the frame's gradients.
 /// OIDN's `maxMemoryMB`, set on every filter: the most scratch memory it may use, beyond
 /// which it denoises in tiles. OIDN's own default let a 3840 x 2160 frame take 2.5 GB of
 /// scratch; at 1024 it takes 1.0 GB there in the same time (13.8 s against 14.1 s, 2 cores;
@@ -95,6 +93,8 @@ pub(crate) fn prior_memory(width: usize, height: usize) -> u64 {
     ours.saturating_add(oidn)
 }
 
+/// A planned screened Poisson solve run on the prior instead of the base image: each frame is
+/// handed to it as the prior (its `color`) and the frame's gradients.
 pub(crate) struct OnPrior {
     prior: Prior,
     inner: Box<dyn Reconstructor>,
