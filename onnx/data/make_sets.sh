@@ -17,7 +17,7 @@
 #           render seed 20000 (tuning: methods, parameters, checkpoints are chosen on it)
 #   test  = base scenes of gaproom lamps cellar caustics fabric courtyard thin foliage,
 #           render seed 30000 (never used to choose anything)
-#   train = perturbed variants of atrium night shelf garden vitrine only (perturbation family
+#   train = perturbed variants of atrium night shelf garden vitrine aquarium only (perturbation family
 #           seed 1, indices 0..11), render seed 40000, in $TRAIN_DIR.
 #   gradnet = GradNet's training set: perturbations 12..97 of the same families, one spp per
 #           view, 144x144, no references, in $GRADNET_DIR (default $GDRECON_DATA/train3).

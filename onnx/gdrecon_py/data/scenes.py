@@ -839,6 +839,37 @@ def vitrine(W, H, rng=None):
     return s
 
 
+def aquarium(W, H, rng=None):
+    """Caustics seen through glass (a training family, added for the combiner: `vitrine`'s
+    caustics are mostly seen directly): the camera looks through a thick glass tank, smooth or
+    frosted, at a pale floor and wall, where a small, very bright lamp behind and above throws
+    caustics through the tank and through a glass ball and a frosted cube standing behind it; a
+    dim room."""
+    s = base_dict(integrator_depth=14)
+    target = [u(rng, 0.0, -0.2, 0.2), 0.45, -0.6]
+    cam = orbit(rng, [0.3, 0.95, 3.2], target, yaw=14, pitch=5, dist=0.1)
+    s["sensor"] = sensor(cam, target, u(rng, 45.0, 38, 52))
+    s["floor"] = rect([0, 0, 0], [0, 1, 0], 3, 3, diffuse(colour(rng, [0.75, 0.72, 0.68], sat=(0, 0.3), val=(0.55, 0.9))))
+    s["wall"] = rect([0, 1.5, -1.8], [0, 0, 1], 3, 1.5, diffuse(colour(rng, [0.6, 0.65, 0.7], sat=(0, 0.35), val=(0.4, 0.85))))
+    # smooth or frosted (a rough dielectric: light through it scatters, and so does the view)
+    glass = {"type": "dielectric", "int_ior": u(rng, 1.33, 1.3, 1.55),
+             "specular_transmittance": rgb(colour(rng, [0.95, 1.0, 1.0], sat=(0, 0.2), val=(0.85, 1.0)))}
+    if choice(rng, "smooth", ["smooth", "rough"]) == "rough":
+        glass = dict(glass, type="roughdielectric", alpha=u(rng, 0.1, 0.03, 0.3))
+    s["tank"] = box([u(rng, 0.0, -0.2, 0.2), 0.42, u(rng, -0.15, -0.3, 0.0)],
+                    [u(rng, 0.85, 0.6, 1.0), 0.42, u(rng, 0.3, 0.2, 0.45)], glass, yaw=u(rng, 0, -20, 20))
+    s["ball"] = sphere([u(rng, -0.45, -0.7, -0.2), 0.2, u(rng, -1.0, -1.3, -0.8)], 0.2,
+                       {"type": "dielectric", "int_ior": u(rng, 1.5, 1.4, 1.8)})
+    s["cube"] = box([u(rng, 0.5, 0.3, 0.7), 0.2, u(rng, -1.0, -1.3, -0.8)], [0.2, 0.2, 0.2],
+                    {"type": "roughdielectric", "int_ior": u(rng, 1.5, 1.4, 1.8), "alpha": u(rng, 0.1, 0.03, 0.3)},
+                    yaw=u(rng, 30, -45, 45))
+    p = u(rng, 300.0, 150.0, 600.0)
+    s["lamp"] = lamp([u(rng, 0.0, -0.8, 0.8), u(rng, 2.0, 1.6, 2.6), u(rng, -1.2, -1.6, -0.8)], 0.1,
+                     tint(rng, [p, p * 0.95, p * 0.85]))
+    s["env"] = {"type": "constant", "radiance": rgb(tint(rng, [0.03, 0.03, 0.035]))}
+    return s
+
+
 def night(W, H, rng=None):
     """Dim interior at night: a living room lit by two small shaded lamps and a dim screen,
     moonlight at the window."""
@@ -974,6 +1005,7 @@ SCENES = {
     "shelf": shelf,
     "garden": garden,
     "vitrine": vitrine,
+    "aquarium": aquarium,
 }
 
 # Three-way split of the scene *families* (docs/data.md):
@@ -981,7 +1013,7 @@ SCENES = {
 #   val:   base scenes, used to tune and choose methods/parameters/checkpoints
 #   test:  base scenes, never used to choose anything; report numbers on them once, at the end
 SPLITS = {
-    "train": ["atrium", "night", "shelf", "garden", "vitrine"],
+    "train": ["atrium", "night", "shelf", "garden", "vitrine", "aquarium"],
     "val": ["cornell", "metals", "glass", "textures", "indirect", "sunsky", "studio", "dusk"],
     "test": ["gaproom", "lamps", "cellar", "caustics", "fabric", "courtyard", "thin", "foliage"],
 }
