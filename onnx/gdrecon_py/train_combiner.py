@@ -6,11 +6,13 @@ bundles' reference layer; checkpoints outside the repository, resumable bit for 
 
 Data: every bundle in --data with a reference layer, and its candidates (`python -m
 gdrecon_py.candidates <folder>` writes them with the library itself). The training split is
-`bash onnx/data/make_sets.sh train` with TRAIN_REF_SPP=1024 (perturbations of atrium, night,
-shelf and garden only; docs/data.md). Validation (--val) is read every --eval-every steps and the
-checkpoint with the lowest geometric-mean relMSE ratio to the prior there is kept as `best.pt`
-(every evaluated step's weights as `step_NNNNNN.pt`, with the worst frame's ratio in the log);
-the test split is never read here.
+`bash onnx/data/make_sets.sh train` (perturbations of the training families only;
+docs/data.md). Validation (--val) is read every --eval-every steps, each frame run as the
+library runs it (`combiner.combine`: the mean guard included), and the checkpoint with the
+lowest geometric-mean relMSE ratio to the prior there is kept as `best.pt` (every evaluated
+step's weights as `step_NNNNNN.pt`, with the worst frame's ratio in the log); the test split is
+never read here. `--reevaluate` redoes the validation entries of a finished run (how the
+twenty-first session's run, trained before the guard existed, was evaluated with it).
 
 Each step: --batch random --patch x --patch crops (seeded), each scaled by a random exposure
 2^U(-2, 2) (radiance layers times k, variance times k^2), so that the network sees radiance
@@ -33,7 +35,7 @@ import time
 import numpy as np
 import torch
 
-from .combiner import CANDIDATES, LAYERS, MULTIPLE, Combiner, relmse_loss
+from .combiner import CANDIDATES, LAYERS, MEAN_TOLERANCE, MULTIPLE, Combiner, combine, relmse_loss
 from .candidates import path as candidate_path
 
 
@@ -101,12 +103,10 @@ def pad_to(x, m=MULTIPLE):
     return x
 
 
-def run_frame(model, x):
-    """Whole-frame inference of one raw input (27 x H x W numpy) -> 3 x H x W numpy."""
-    h, w = x.shape[1:]
-    with torch.no_grad():
-        out = model(pad_to(torch.from_numpy(x)[None]))
-    return out[0, :, :h, :w].numpy()
+def run_frame(model, x, tolerance=MEAN_TOLERANCE):
+    """Whole-frame inference of one raw input (27 x H x W numpy) -> 3 x H x W numpy, as the
+    library runs it (the mean guard included; `tolerance` 0 leaves it out)."""
+    return combine(x, lambda f: model.head(torch.from_numpy(f)).numpy(), tolerance)
 
 
 def evaluate(model, frames):
@@ -125,9 +125,44 @@ def geo_ratio(res):
     return math.exp(np.mean([math.log(a / b) for a, b in res.values()]))
 
 
+def validation(model, val):
+    """A log entry's validation fields: the geometric-mean ratio to the prior (all frames and
+    per spp) and the worst frame's."""
+    res = evaluate(model, val)
+    worst = max(res, key=lambda k: res[k][0] / res[k][1])
+    entry = {"val_vs_prior": geo_ratio(res), "val_worst": [worst, res[worst][0] / res[worst][1]]}
+    for spp in (4, 16, 64):
+        sub = {k: v for k, v in res.items() if k.endswith(f"_{spp}spp")}
+        if sub:
+            entry[f"val_vs_prior_{spp}"] = geo_ratio(sub)
+    return entry
+
+
+def reevaluate(model, val, out, last):
+    """--reevaluate: every logged step's weights (step_NNNNNN.pt) through `validation` again;
+    the log in `last` and log.json get the new validation fields, `best.pt` the new best."""
+    ck = torch.load(last, weights_only=False)
+    best = float("inf")
+    for entry in ck["log"]:
+        model.load_state_dict(torch.load(os.path.join(out, f"step_{entry['step']:06d}.pt")))
+        model.eval()
+        entry.update(validation(model, val))
+        if entry["val_vs_prior"] < best:
+            best = entry["val_vs_prior"]
+            torch.save(model.state_dict(), os.path.join(out, "best.pt"))
+        print(json.dumps(entry), flush=True)
+    ck["best"] = best
+    torch.save(ck, last + ".tmp")
+    os.replace(last + ".tmp", last)
+    if os.path.exists(os.path.join(out, "log.json")):
+        with open(os.path.join(out, "log.json"), "w") as f:
+            json.dump(ck["log"], f, indent=1)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", default=os.path.expanduser("~/.cache/gdrecon/data/train2"))
+    ap.add_argument("--data", default=os.path.expanduser("~/.cache/gdrecon/data/train2"),
+                    help="training folder, or several separated by commas (their frames pooled)")
     ap.add_argument("--val", default=os.path.expanduser("~/.cache/gdrecon/data/val"))
     ap.add_argument("--out", required=True)
     ap.add_argument("--steps", type=int, default=4000)
@@ -143,13 +178,17 @@ def main(argv=None):
     ap.add_argument("--mixed", type=int, default=4, choices=(3, 4),
                     help="candidates mixed: the first 3 (prior, l1prior, l1weak) or all 4 (and the base image)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--reevaluate", action="store_true",
+                    help="evaluate every saved step of the run in --out on --val again, as the library "
+                         "runs the network now (e.g. with a mean guard added after training), and "
+                         "replace the validation entries of its log (last.pt, log.json); no training")
     ap.add_argument("--stop-at", type=int, default=None,
                     help="end this invocation at this step (after its checkpoint); rerun to resume")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     os.makedirs(args.out, exist_ok=True)
     t0 = time.time()
-    train = load_set(args.data)
+    train = [f for folder in args.data.split(",") for f in load_set(folder)]
     val = load_set(args.val) if args.val else []
     print(f"{len(train)} training frames, {len(val)} validation frames, loaded in {time.time() - t0:.0f} s", flush=True)
     if not train:
@@ -173,6 +212,10 @@ def main(argv=None):
         step, best, log = ck["step"], ck["best"], ck["log"]
         print(f"resumed at step {step}", flush=True)
 
+    if args.reevaluate:
+        reevaluate(model, val, args.out, last)
+        return
+
     running, t_train = [], time.time()
     while step < min(args.steps, args.stop_at or args.steps):
         x, ref = sample(train, rng, args.batch, args.patch)
@@ -194,14 +237,7 @@ def main(argv=None):
             entry = {"step": step, "train_loss": float(np.mean(running)), "seconds": time.time() - t_train}
             running = []
             if val:
-                res = evaluate(model, val)
-                entry["val_vs_prior"] = geo_ratio(res)
-                worst = max(res, key=lambda k: res[k][0] / res[k][1])
-                entry["val_worst"] = [worst, res[worst][0] / res[worst][1]]
-                for spp in (4, 16, 64):
-                    sub = {k: v for k, v in res.items() if k.endswith(f"_{spp}spp")}
-                    if sub:
-                        entry[f"val_vs_prior_{spp}"] = geo_ratio(sub)
+                entry.update(validation(model, val))
                 if entry["val_vs_prior"] < best:
                     best = entry["val_vs_prior"]
                     torch.save(model.state_dict(), os.path.join(args.out, "best.pt"))

@@ -1,5 +1,6 @@
 """The combiner's Python side: the weighted sum is a convex combination of the candidates, the
-reference `combine` pads, mixes and crops as the Rust side does and equals the model's forward,
+reference `combine` pads, mixes and crops as the Rust side does and equals the model's forward
+(the mean guard off), the guard's window means and verdict,
 an export (the head: features in, logits out) matches torch through onnxruntime, and the
 checkpoint rule. (Resuming a training run bit for bit was checked by hand:
 `--stop-at 20` then a rerun gives the uninterrupted run's losses to the last digit.)"""
@@ -68,13 +69,42 @@ def test_combine_repeats_the_last_row_and_column_and_crops():
     assert np.allclose(out, x[:9].reshape(3, 3, 9, 6).mean(0), atol=1e-6)
 
 
-def test_combine_is_the_models_forward():
+def test_combine_without_the_guard_is_the_models_forward():
     torch.manual_seed(4)
     m = cb.Combiner(mixed=3).eval()
     x = random_input(n=1, h=13, w=10)[0].numpy()
     with torch.no_grad():
-        got = cb.combine(x, lambda f: m.head(torch.from_numpy(f)).numpy())
-    assert np.allclose(got, cb.reference(x, m), atol=1e-6)
+        got = cb.combine(x, lambda f: m.head(torch.from_numpy(f)).numpy(), tolerance=0)
+        want = m(torch.from_numpy(cb.pad(x))).numpy()[0, :, :13, :10]
+    assert np.allclose(got, want, atol=1e-6)
+
+
+def test_box_mean_is_the_clamped_window_mean():
+    rng = np.random.default_rng(5)
+    img = rng.random((7, 12))  # smaller than the window one way
+    got = cb.box_mean(img, 9)
+    for y in range(7):
+        for x in range(12):
+            ys = np.clip(np.arange(y - 4, y + 5), 0, 6)
+            xs = np.clip(np.arange(x - 4, x + 5), 0, 11)
+            assert abs(got[y, x] - img[np.ix_(ys, xs)].mean()) < 1e-12
+
+
+def test_the_guard_drops_a_candidate_that_loses_a_regions_energy():
+    h, w = 30, 40
+    x = np.ones((cb.IN_CHANNELS, h, w), np.float32)
+    x[6:9, 10:22, 12:24] = 0.2  # the weak candidate loses a 12 x 12 block's energy
+    drop = cb.dropped(x, 3, 0.4)
+    assert not drop[0].any() and not drop[1].any()
+    assert drop[2, 16, 18] and not drop[2, 2, 2]
+    # equal logits: where the weak candidate is dropped the prior and the strong one share the
+    # weight (1 inside the block), elsewhere all three do
+    out = cb.combine(x, lambda f: np.zeros((1, 3) + f.shape[2:], np.float32))
+    assert np.allclose(out[:, 16, 18], 1.0) and np.allclose(out[:, 2, 2], 1.0)
+    # the block's corner pixel: its window holds 36 of the block's pixels, a departure of
+    # 0.8 * 36 / 81 = 0.36 < 0.4 * 1.01, so the weak candidate keeps its share there
+    assert not drop[2, 10, 12] and np.allclose(out[:, 10, 12], (2 + 0.2) / 3)
+    assert not cb.dropped(x, 3, 0).any()
 
 
 def test_an_export_matches_torch_through_onnxruntime(tmp_path):
