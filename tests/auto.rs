@@ -1,7 +1,7 @@
-//! `auto` picks per frame and says why: the L1 prior path when a prior is given or Open Image
-//! Denoise loads (tests/prior.rs); without it (`use_prior` false here, so that OIDN's presence
-//! does not matter) GradNet whenever it can run, else FRGR (`frgr`) when the spp is known,
-//! else L1.
+//! `auto` picks per frame and says why: the prior path (the combiner, else L1 on the prior)
+//! when a prior is given or Open Image Denoise loads (tests/prior.rs); without it (`use_prior`
+//! false here, so that OIDN's presence does not matter) GradNet whenever it can run, else FRGR
+//! (`frgr`) when the spp is known, else L1.
 
 use std::path::Path;
 

@@ -20,17 +20,15 @@ const METHODS: [Method; 4] = [
 
 /// (frame, method) pairs measured worse than their input (relMSE at the time of writing, base
 /// in brackets). Bulbs in view break FRGR, whose published pre-processing assumes radiance in
-/// [0, 1]. `auto` takes the L1 prior path when Open Image Denoise loads (as here), and OIDN
-/// spreads the bulbs' energy (radiance up to 424) into the dark wood beside them: the prior
-/// alone is 1.50, 15x the input; without OIDN `auto` picks GradNet (0.0795, under the base),
-/// and FRGR (3.31) only where ONNX Runtime is missing too. Issue "Accurate on scenes it was
-/// never tuned on" tracks them.
+/// [0, 1]. Issue "Accurate on scenes it was never tuned on" tracks it.
 /// GradNet's two failures ended with the GPU-trained model (fp32, the default): `lamps_16spp`
 /// 0.0795 against the base's 0.0996 (0.372 before; 0.177 with `precision=int8`), `thin_16spp`
-/// (sub-pixel wires) 0.0080 against 0.0181 (0.0334 before).
+/// (sub-pixel wires) 0.0080 against 0.0181 (0.0334 before). `auto`'s ended when it took the
+/// combiner on the prior path (twenty-first session): `lamps_16spp` 0.0858, where L1 on the
+/// prior gave 0.847 (OIDN spreads the bulbs' energy, radiance up to 424, into the dark wood
+/// beside them; the prior alone is 1.50); without OIDN `auto` picks GradNet (0.0795).
 const KNOWN_WORSE: &[(&str, &str)] = &[
     ("lamps_16spp.exr", "frgr"), // 3.31 (0.0996); 3.39 without the noise band
-    ("lamps_16spp.exr", "auto"), // 0.847 with OIDN (0.0996)
 ];
 
 fn guard_frames() -> Vec<PathBuf> {

@@ -1,15 +1,17 @@
 //! `auto`: picks a method per frame from what the frame carries, and says why.
 //!
 //! The rule, from the validation set (`docs/benchmarks.md`):
-//! 0. **a prior → `l1` on the prior** (preset `prior`), or **the combiner** with `use_combiner`
-//!    (off by default), when the frame has a `prior` layer or Open Image Denoise can be loaded.
-//!    L1 on the prior is 0.80-0.88x OIDN alone on the validation split (geometric mean per
-//!    spp), better than every method without a prior (the best of them, GradNet, is 1.61 /
-//!    1.02 / 1.06x OIDN at 4 / 16 / 64 spp there). The combiner (which needs ONNX
-//!    Runtime and the frame's variance, albedo and normal) is 0.68-0.79x there and 0.52-0.67x
-//!    on test, but loses to the prior by 7 % on the validation `glass` frames (4 and 64 spp),
-//!    so it is not the default yet (`docs/benchmarks.md`, "Sixteenth session: the combiner").
-//!    Why the combiner or OIDN could not run is part of the note when it falls through.
+//! 0. **a prior → the combiner** (learned weights over the prior and L1 on it), or **`l1` on
+//!    the prior** (preset `prior`) when the combiner cannot run (built without ONNX Runtime,
+//!    the runtime or the model not found, or the frame lacks variance, albedo or normal) or
+//!    `use_combiner` is false; taken when the frame has a `prior` layer or Open Image Denoise
+//!    can be loaded. On the validation split the combiner is 0.77 / 0.78 / 0.68x OIDN alone
+//!    (geometric mean at 4 / 16 / 64 spp) with no frame above 1.03x; L1 on the prior 0.88 /
+//!    0.86 / 0.80x (worst 1.03x); both better than every method without a prior (the best of
+//!    them, GradNet, is 1.61 / 1.02 / 1.06x OIDN there). The combiner became the default in
+//!    the twenty-first session, once no validation frame was worse than OIDN alone by more
+//!    than #16's 5 % (`docs/benchmarks.md`). Why the combiner or OIDN could not run is part of
+//!    the note when it falls through.
 //! 1. **no prior → `gradnet`** when ONNX Runtime and the model load. The GPU-trained model
 //!    (nineteenth session) is 0.72 / 0.53 / 0.75x FRGR's relMSE at 4 / 16 / 64 spp on the
 //!    validation split (geometric mean; 0.50 / 0.53 / 0.64 on test) and needs no sample
@@ -21,7 +23,7 @@
 //!    is part of the note.
 //!
 //! The chosen method is planned on the first frame that needs it and kept: a sequence of
-//! frames of one kind plans once. The report names the method that ran (`auto -> l1 (prior)`)
+//! frames of one kind plans once. The report names the method that ran (`auto -> combiner`)
 //! and why. A render farm that must give every node the same image sets `fallback` to false:
 //! a frame whose preferred path cannot run on this machine (OIDN or ONNX Runtime missing) is
 //! then an error instead of another method's image.
@@ -75,7 +77,7 @@ impl Default for Rules {
     fn default() -> Self {
         Rules {
             use_prior: true,
-            use_combiner: false,
+            use_combiner: true,
             fallback: true,
         }
     }
@@ -85,16 +87,17 @@ impl Params for Rules {
     const TABLE: &'static [Param<Self>] = &[
         Param::bool(
             "use_prior",
-            "Take the prior path (l1 on the prior) when the frame has a 'prior' layer or Open \
-             Image Denoise loads; false: never load OIDN, pick among frgr, gradnet and l1",
+            "Take the prior path (the combiner, or l1 on the prior) when the frame has a 'prior' \
+             layer or Open Image Denoise loads; false: never load OIDN, pick among frgr, gradnet \
+             and l1",
             |c| c.use_prior,
             |c, v| c.use_prior = v,
         ),
         Param::bool(
             "use_combiner",
             "On the prior path, run the combiner (learned weights over the prior and L1 on it) \
-             when ONNX Runtime loads and the frame has variance, albedo and normal; false (the \
-             default until it loses to the prior on no validation frame): L1 on the prior",
+             when ONNX Runtime loads and the frame has variance, albedo and normal; false, or \
+             when it cannot run: L1 on the prior",
             |c| c.use_combiner,
             |c, v| c.use_combiner = v,
         ),
@@ -294,8 +297,10 @@ impl Auto {
     /// Plans the prior path when `use_prior` is set (its buffers, not OIDN, which is loaded
     /// by the first frame that needs it), so that its allocation fails here rather than in an
     /// execute, and does not delay a cancel of the first frame (making a 1280 x 720 L1 plan
-    /// writes 140 MB: 70 ms). The other paths depend on the frames and are planned by the
-    /// first frame that takes them.
+    /// writes 140 MB: 70 ms; the combiner's, with two of them and ONNX Runtime's session, 0.2
+    /// s): the combiner when `use_combiner` is set and it can be planned (else why not is
+    /// kept for the notes), L1 on the prior otherwise. The other paths depend on the frames
+    /// and are planned by the first frame that takes them.
     pub(crate) fn new(
         config: AutoConfig,
         context: &Context,
@@ -313,7 +318,18 @@ impl Auto {
             oidn_error: None,
         };
         if auto.config.use_prior {
-            auto.plan("prior", &MethodConfig::PoissonL1(auto.config.prior))?;
+            let combiner = MethodConfig::Combiner(auto.config.combiner());
+            let planned = auto.config.use_combiner && {
+                let made = auto.plan("combiner", &combiner).map(|_| ());
+                if let Err(e) = made {
+                    auto.combiner_error =
+                        Some(e.to_string().lines().next().unwrap_or_default().into());
+                }
+                auto.combiner_error.is_none()
+            };
+            if !planned {
+                auto.plan("prior", &MethodConfig::PoissonL1(auto.config.prior))?;
+            }
         }
         Ok(auto)
     }
@@ -353,9 +369,10 @@ impl Auto {
                 Ok(found) => return Ok(found),
                 Err(e) => {
                     self.oidn_error = Some(e.to_string().lines().next().unwrap_or_default().into());
-                    // Without OIDN only frames with a prior layer take that path: its plan
-                    // is given back, and made again by such a frame.
-                    self.plans.retain(|(path, _)| *path != "prior");
+                    // Without OIDN only frames with a prior layer take that path: its plans
+                    // are given back, and made again by such a frame.
+                    self.plans
+                        .retain(|(path, _)| *path != "prior" && *path != "combiner");
                 }
             }
         }
@@ -414,7 +431,7 @@ impl Reconstructor for Auto {
                 match self.combiner_blocked(frame) {
                     None => {
                         report.note(format!(
-                            "auto: {why}: combiner (0.68-0.79x Open Image Denoise alone on \
+                            "auto: {why}: combiner (0.68-0.78x Open Image Denoise alone on \
                              the validation split)"
                         ));
                         report.method = "auto -> combiner".into();
