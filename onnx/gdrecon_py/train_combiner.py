@@ -35,7 +35,7 @@ import time
 import numpy as np
 import torch
 
-from .combiner import CANDIDATES, LAYERS, MEAN_TOLERANCE, MULTIPLE, Combiner, combine, relmse_loss
+from .combiner import CANDIDATES, LAYERS, MEAN_TOLERANCE, Combiner, combine, relmse_loss
 from .candidates import path as candidate_path
 
 
@@ -92,15 +92,6 @@ def sample(frames, rng, batch, patch):
         xs.append(xc)
         rs.append(rc)
     return torch.from_numpy(np.stack(xs)), torch.from_numpy(np.stack(rs))
-
-
-def pad_to(x, m=MULTIPLE):
-    """Replicate-pads the bottom and right to multiples of m (returns the padded tensor)."""
-    h, w = x.shape[-2:]
-    ph, pw = (-h) % m, (-w) % m
-    if ph or pw:
-        x = torch.nn.functional.pad(x, (0, pw, 0, ph), mode="replicate")
-    return x
 
 
 def run_frame(model, x, tolerance=MEAN_TOLERANCE):

@@ -621,6 +621,7 @@ mod enabled {
                     [sources[1], sources[2]],
                     self.mean_tolerance,
                     FLOOR,
+                    progress,
                 )
             })?;
             let mut net = self.net.lock().unwrap_or_else(|p| p.into_inner());
