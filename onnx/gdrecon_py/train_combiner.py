@@ -35,7 +35,7 @@ import time
 import numpy as np
 import torch
 
-from .combiner import CANDIDATES, LAYERS, MEAN_TOLERANCE, Combiner, combine, relmse_loss
+from .combiner import CANDIDATES, LAYERS, Combiner, reference, relmse_loss
 from .candidates import path as candidate_path
 
 
@@ -94,18 +94,12 @@ def sample(frames, rng, batch, patch):
     return torch.from_numpy(np.stack(xs)), torch.from_numpy(np.stack(rs))
 
 
-def run_frame(model, x, tolerance=MEAN_TOLERANCE):
-    """Whole-frame inference of one raw input (27 x H x W numpy) -> 3 x H x W numpy, as the
-    library runs it (the mean guard included; `tolerance` 0 leaves it out)."""
-    return combine(x, lambda f: model.head(torch.from_numpy(f)).numpy(), tolerance)
-
-
 def evaluate(model, frames):
     """{stem: (relMSE combiner, relMSE prior)} over whole frames."""
     res = {}
     model.eval()
     for stem, x, ref in frames:
-        out = run_frame(model, x)
+        out = reference(x, model)  # as the library runs it, the mean guard included
         r = torch.from_numpy(ref)
         res[stem] = (float(relmse_loss(torch.from_numpy(out), r)), float(relmse_loss(torch.from_numpy(x[:3]), r)))
     model.train()

@@ -318,15 +318,7 @@ impl Auto {
             oidn_error: None,
         };
         if auto.config.use_prior {
-            let combiner = MethodConfig::Combiner(auto.config.combiner());
-            let planned = auto.config.use_combiner && {
-                let made = auto.plan("combiner", &combiner).map(|_| ());
-                if let Err(e) = made {
-                    auto.combiner_error =
-                        Some(e.to_string().lines().next().unwrap_or_default().into());
-                }
-                auto.combiner_error.is_none()
-            };
+            let planned = auto.config.use_combiner && auto.combiner_unplanned().is_none();
             if !planned {
                 auto.plan("prior", &MethodConfig::PoissonL1(auto.config.prior))?;
             }
@@ -399,6 +391,13 @@ impl Auto {
         if !missing.is_empty() {
             return Some(format!("the frame lacks {}", missing.join(", ")));
         }
+        self.combiner_unplanned()
+    }
+
+    /// Plans the combiner unless it is planned already or could not be; why it could not
+    /// (ONNX Runtime or the model, or memory; tried once, the failure kept), `None` when it is
+    /// planned.
+    fn combiner_unplanned(&mut self) -> Option<String> {
         if self.combiner_error.is_none() {
             let choice = MethodConfig::Combiner(self.config.combiner());
             if let Err(e) = self.plan("combiner", &choice) {
