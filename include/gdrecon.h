@@ -20,7 +20,7 @@
  * (the last column of dx and the last row of dy are ignored); linear HDR f32 RGB; variance is
  * the variance of the colour mean. NaN, Inf and negative colour/variance are replaced by 0 and
  * counted (the report says how many), or rejected with "strict" = true. The output never
- * contains NaN or Inf.
+ * contains NaN, Inf or negative values.
  *
  * The prior (the product's main path). The optional image "prior" (RGB) is a denoiser's output
  * for this frame, computed from "color" as rendered (not from any average of shifted

@@ -33,6 +33,10 @@ pub struct Report {
     /// Output values that came out non-finite and were replaced by the base colour. Always 0
     /// unless a method has a bug; kept so that the guarantee "no NaN or Inf out" is checkable.
     pub output_repaired: u64,
+    /// Output values that came out negative and were set to 0 (radiance is never negative, so
+    /// this moves each of them closer to any reference). Screened Poisson solves produce a
+    /// few where the gradients disagree with the base image, e.g. beside emitters in view.
+    pub output_clamped: u64,
 }
 
 impl Report {
@@ -86,6 +90,13 @@ impl fmt::Display for Report {
                 f,
                 "  output: {} non-finite values replaced by the base colour",
                 self.output_repaired
+            )?;
+        }
+        if self.output_clamped > 0 {
+            writeln!(
+                f,
+                "  output: {} negative values set to 0",
+                self.output_clamped
             )?;
         }
         Ok(())

@@ -179,8 +179,7 @@ fn default_l1_is_converged() {
     let default = PoissonL1Config::default();
     for (f, truth) in [(&frame, &clean), (&hdr, &bright)] {
         let converged = reference_l1(f, 0.2, default.reweight_steps, default.reg_floor.into());
-        // With the noise band's floor at 0, which the default applies to its own solve
-        // (this frame has no variance layer, so that is all the band does).
+        // Negative values set to 0, as the plan does to every output.
         let converged = Image::from_fn(3, w, h, |(c, x, y)| {
             (converged[c][y * w + x] as f32).max(0.0)
         });

@@ -212,6 +212,8 @@ fn every_method_survives_every_case_within_the_bound() {
                 case.name
             );
             assert_eq!(report.output_repaired, 0, "{} / {method}", case.name);
+            let negative = out.as_slice().iter().filter(|v| **v < 0.0).count();
+            assert_eq!(negative, 0, "{} / {method}: negative output", case.name);
             // Screened Poisson (alpha 0.2) and the filter: max|I_b| + 4 max|g| / alpha^2.
             // GradNet clamps to max(I_b) + (W + H) max|g| (any path from the brightest pixel);
             // auto runs one of them.

@@ -219,14 +219,15 @@ def pad(x):
 def combine(x, run, tolerance=MEAN_TOLERANCE):
     """The library's output (3 x H x W) for the 27 x H x W input: `pad`, the features, `run`
     (the graph: N x 21 x h x w features -> N x k x h x w logits), cropped, then `mix` with the
-    mean guard's `dropped` candidates."""
+    mean guard's `dropped` candidates, negative values set to 0 (as the library's plan does to
+    every output: radiance is never negative)."""
     import numpy as np
     h, w = x.shape[1:]
     with torch.no_grad():
         f = features(torch.from_numpy(pad(x))).numpy()
         logits = torch.from_numpy(np.asarray(run(f)))[:, :, :h, :w]
         drop = torch.from_numpy(dropped(x, logits.shape[1], tolerance))[None]
-        out = mix(logits, torch.from_numpy(x)[None], drop)
+        out = mix(logits, torch.from_numpy(x)[None], drop).clamp(min=0)
     return out.numpy()[0]
 
 

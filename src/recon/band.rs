@@ -6,17 +6,8 @@
 //! Per pixel and channel, with `s` the standard deviation of the base's noise (the square root
 //! of the variance layer averaged over the 3 x 3 neighbourhood, reflect-101 borders: a
 //! variance of the mean estimated from a few passes is itself noisy, and its 3 x 3 mean
-//! undershoots less), the output is clamped to `[max(I_b - k s, 0), I_b + k s]`. Frames
-//! without a variance layer are clamped to `[0, inf)` only.
-//!
-//! The lower edge never goes below 0 because radiance is never negative: the projection onto
-//! `x >= 0` moves every negative value closer to any non-negative reference, so it cannot
-//! raise any pixel's error. The solves do produce negative values: next to emitters in view,
-//! where the gradients cannot be integrated (`lamps` 4 spp: L1 put -17.7 where the reference
-//! is 0.13, one pixel costing 0.18 of the frame's relMSE), and a little everywhere at low spp.
-//! Checked on the validation split before the test split was read (`docs/benchmarks.md`,
-//! twenty-second session): L1's geometric-mean relMSE fell 7 / 1.4 / 3.6 % at 4 / 16 / 64
-//! spp there; FRGR's and GradNet's outputs were never negative.
+//! undershoots less), the output is clamped to `[I_b - k s, I_b + k s]`. Frames without a
+//! variance layer are left as they are.
 //!
 //! The width `k` is each method's `noise_band` parameter. Its default, 5, was chosen on the
 //! validation split (`docs/benchmarks.md`, "The noise band"): there it removes the gross
@@ -58,9 +49,8 @@ pub(crate) const fn param<C>(get: fn(&C) -> f32, set: fn(&mut C, f32)) -> Param<
 /// The documentation of every method's `noise_band` parameter.
 const NOISE_BAND_DOC: &str =
     "Clamp the output to the base image ± this many standard deviations of its noise (the \
-     variance layer's 3 x 3 mean), and to at least 0: where a reconstruction leaves the base \
-     by more, it is wrong there, and radiance is never negative; 0: off (frames without a \
-     variance layer are only kept from going negative)";
+     variance layer's 3 x 3 mean): where a reconstruction leaves the base by more, it is \
+     wrong there; 0: off (frames without a variance layer are never clamped)";
 
 /// `inner`, its output clamped to the noise band of half-width `k` (`inner` itself when `k`
 /// is 0). The band is taken around the frame the plan is given, whatever `inner` makes of it
@@ -91,42 +81,30 @@ impl Reconstructor for Banded {
         progress: &Progress,
     ) -> Result<()> {
         self.inner.reconstruct_into(frame, out, report, progress)?;
+        if frame.variance().is_none() {
+            report.skip("noise band (no variance layer)");
+            return Ok(());
+        }
         let k = self.k;
         let moved = report.time("noise band", || clamp_to_band(out, frame, k));
         if moved > 0 {
-            report.note(if frame.variance().is_some() {
-                format!(
-                    "noise band: {moved} values clamped to the base ± {k} standard deviations \
-                     (and at least 0)"
-                )
-            } else {
-                format!("noise band: no variance layer; {moved} negative values set to 0")
-            });
+            report.note(format!(
+                "noise band: {moved} values clamped to the base ± {k} standard deviations"
+            ));
         }
         Ok(())
     }
 }
 
-/// Clamps `out` to the base image ± `k` standard deviations of its noise, and at least 0;
-/// without a variance layer, to at least 0 only. Returns how many values moved (none with `k`
-/// 0, which means off).
+/// Clamps `out` to the base image ± `k` standard deviations of its noise; returns how many
+/// values moved (0 without a variance layer or with `k` 0, which means off).
 pub(crate) fn clamp_to_band(out: &mut Image, frame: &Frame, k: f32) -> u64 {
+    let Some(var) = frame.variance() else {
+        return 0;
+    };
     if k <= 0.0 {
         return 0;
     }
-    let Some(var) = frame.variance() else {
-        return out
-            .as_mut_slice()
-            .par_iter_mut()
-            .map(|v| {
-                let negative = *v < 0.0;
-                if negative {
-                    *v = 0.0;
-                }
-                u64::from(negative)
-            })
-            .sum();
-    };
     let (w, h) = out.size();
     if w == 0 || h == 0 {
         return 0;
@@ -153,8 +131,7 @@ pub(crate) fn clamp_to_band(out: &mut Image, frame: &Frame, k: f32) -> u64 {
                 }
                 let s = ((sum / 9.0).max(0.0).sqrt() * f64::from(k)) as f32;
                 let b = base[x];
-                // The base is sanitised (never negative), so the interval is never empty.
-                let clamped = v.clamp((b - s).max(0.0), b + s);
+                let clamped = v.clamp(b - s, b + s);
                 if clamped != *v {
                     *v = clamped;
                     moved += 1;
@@ -200,7 +177,7 @@ mod tests {
             }
             let s = ((sum / 9.0).sqrt() * f64::from(k)) as f32;
             let b = frame.color().at(c, x, y);
-            out.at(c, x, y).max(b - s).min(b + s).max(0.0)
+            out.at(c, x, y).clamp(b - s, b + s)
         })
     }
 
@@ -209,11 +186,8 @@ mod tests {
         let (w, h) = (7, 5);
         let var = Image::from_fn(3, w, h, |(c, x, y)| 1e-3 * ((x + 2 * y + c) % 5) as f32);
         let f = frame(w, h, Some(var));
-        // Negative values too, and bands wide enough to reach below 0.
-        let out = Image::from_fn(3, w, h, |(c, x, y)| {
-            ((x * 7 + y * 5 + c) % 9) as f32 * 0.15 - 0.3
-        });
-        for k in [0.5, 2.0, 5.0, 40.0] {
+        let out = Image::from_fn(3, w, h, |(c, x, y)| ((x * 7 + y * 5 + c) % 9) as f32 * 0.15);
+        for k in [0.5, 2.0, 5.0] {
             let mut got = out.clone();
             let moved = clamp_to_band(&mut got, &f, k);
             let want = reference(&out, &f, k);
@@ -229,23 +203,6 @@ mod tests {
         }
     }
 
-    /// A band so wide that only its lower edge at 0 binds: the negative values, and only they,
-    /// become 0.
-    #[test]
-    fn never_negative() {
-        let (w, h) = (6, 4);
-        let var = Image::from_fn(3, w, h, |_| 1e6);
-        let out = Image::from_fn(3, w, h, |(c, x, y)| x as f32 - 2.0 + 0.5 * (y + c) as f32);
-        let negative = out.as_slice().iter().filter(|v| **v < 0.0).count() as u64;
-        assert!(negative > 0);
-        for f in [frame(w, h, Some(var)), frame(w, h, None)] {
-            let mut got = out.clone();
-            assert_eq!(clamp_to_band(&mut got, &f, 5.0), negative);
-            let want = Image::from_fn(3, w, h, |(c, x, y)| out.at(c, x, y).max(0.0));
-            assert_eq!(got, want);
-        }
-    }
-
     #[test]
     fn without_variance_or_width_nothing_moves() {
         let (w, h) = (6, 4);
@@ -253,9 +210,6 @@ mod tests {
         let mut got = out.clone();
         assert_eq!(clamp_to_band(&mut got, &frame(w, h, None), 5.0), 0);
         assert_eq!(got, out);
-        let mut negative = Image::from_fn(3, w, h, |_| -1.0);
-        assert_eq!(clamp_to_band(&mut negative, &frame(w, h, None), 0.0), 0);
-        assert!(negative.as_slice().iter().all(|v| *v == -1.0));
         let zero_var = frame(w, h, Some(Image::zeros(3, w, h)));
         assert_eq!(clamp_to_band(&mut got, &zero_var, 0.0), 0);
         assert_eq!(got, out);

@@ -598,7 +598,14 @@ mod enabled {
                 // The solves' own stages and notes, prefixed with which candidate they are.
                 let mut inner = Report::default();
                 report.time(name, || {
-                    solve.reconstruct_into(&on_prior, output, &mut inner, progress)
+                    solve.reconstruct_into(&on_prior, output, &mut inner, progress)?;
+                    // As `l1 --preset prior` gives it (the plan sets negative values to 0),
+                    // which is how the training data's candidates were made.
+                    output
+                        .as_mut_slice()
+                        .par_iter_mut()
+                        .for_each(|v| *v = v.max(0.0));
+                    Ok::<_, Error>(())
                 })?;
                 report
                     .notes
