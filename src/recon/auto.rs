@@ -430,7 +430,7 @@ impl Reconstructor for Auto {
                 match self.combiner_blocked(frame) {
                     None => {
                         report.note(format!(
-                            "auto: {why}: combiner (0.68-0.78x Open Image Denoise alone on \
+                            "auto: {why}: combiner (0.67-0.77x Open Image Denoise alone on \
                              the validation split)"
                         ));
                         report.method = "auto -> combiner".into();
