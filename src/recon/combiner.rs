@@ -227,10 +227,10 @@ impl Register for CombinerConfig {
         }
     }
 
-    /// The prior's share, both L1 solves and their outputs, and the network's run over one
-    /// tile (or the whole frame).
+    /// The prior's share, the L1 solve (one plan for both candidates) and both outputs, and
+    /// the network's run over one tile (or the whole frame).
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
-        let [strong, weak] = candidates(self);
+        let [strong, _] = candidates(self);
         let whole = self.tile_size == 0 || width.saturating_mul(height) <= self.whole_pixels;
         let (tw, th) = if whole {
             (width, height)
@@ -239,7 +239,6 @@ impl Register for CombinerConfig {
         };
         prior_memory(width, height)
             .saturating_add(l1_memory(&strong, width, height))
-            .saturating_add(l1_memory(&weak, width, height))
             // the candidates and the guard's mask
             .saturating_add(bytes_for(width, height, 5 * 12 + 1, 0))
             .saturating_add(bytes_for(tw, th, NET_BYTES, NET_FIXED))
@@ -267,7 +266,7 @@ mod enabled {
     use crate::recon::gradnet::net::{cancellable, input_names, input_shape, output, session};
     use crate::recon::gradnet::runtime;
     use crate::recon::gradnet::tiles::{self, Overlap, Tile};
-    use crate::recon::poisson_l1::PoissonL1;
+    use crate::recon::poisson_l1::{PoissonL1, PoissonL1Config};
     use crate::recon::prior::{anchored, Prior, Quality};
     use crate::recon::{Method, Reconstructor};
     use crate::report::{Report, Stage};
@@ -345,8 +344,12 @@ mod enabled {
     /// The combiner planned for one frame size.
     pub(crate) struct Combiner {
         prior: Prior,
-        /// L1 on the prior, strong and weak data term.
-        solves: [PoissonL1; 2],
+        /// L1 on the prior, planned once and reconfigured for each candidate in turn (their
+        /// settings differ in the data term's weight and the step count only; one plan's
+        /// buffers instead of two: 1.2 GB less at 3840 x 2160).
+        solve: PoissonL1,
+        /// The strong and the weak candidate's settings.
+        candidates: [PoissonL1Config; 2],
         /// Their outputs.
         outputs: [Image; 2],
         net: Arc<Mutex<Net>>,
@@ -406,13 +409,11 @@ mod enabled {
                 };
                 Ok(Mutex::new(Net::new(&rt.env, &bytes, threads)?))
             })?;
-            let [strong, weak] = candidates(&config);
+            let candidates = candidates(&config);
             Ok(Combiner {
                 prior: Prior::new(context, width, height, Quality::High),
-                solves: [
-                    PoissonL1::new(strong, width, height)?,
-                    PoissonL1::new(weak, width, height)?,
-                ],
+                solve: PoissonL1::new(candidates[0], width, height)?,
+                candidates,
                 outputs: [
                     Image::try_zeros(3, width, height)?,
                     Image::try_zeros(3, width, height)?,
@@ -593,8 +594,10 @@ mod enabled {
             };
             let on_prior = anchored(prior, frame)?;
             let names = ["l1 (strong)", "l1 (weak)"];
-            for ((solve, output), name) in self.solves.iter_mut().zip(&mut self.outputs).zip(names)
+            for ((config, output), name) in self.candidates.iter().zip(&mut self.outputs).zip(names)
             {
+                let solve = &mut self.solve;
+                solve.reconfigure(*config);
                 // The solves' own stages and notes, prefixed with which candidate they are.
                 let mut inner = Report::default();
                 report.time(name, || {

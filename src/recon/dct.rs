@@ -42,34 +42,39 @@ impl DctPoisson {
     pub fn new(dims: Dims, alpha: f32) -> Result<Self> {
         let Dims { w, h } = dims;
         let mut planner = DctPlanner::new();
-        let rows = planner.plan_dct2(w);
-        let cols = planner.plan_dct2(h);
+        let mut solver = DctPoisson {
+            dims,
+            rows: planner.plan_dct2(w),
+            cols: planner.plan_dct2(h),
+            inv_eigen: try_vec(w * h, 0.0f32)?,
+            // The three colour planes every caller solves for, allocated with the plan (an
+            // execution then allocates nothing large).
+            transposed: try_vec(3 * dims.len(), 0.0)?,
+        };
+        solver.set_alpha(alpha);
+        Ok(solver)
+    }
+
+    /// Makes this the solver for `alpha` (the same size): the same values as a solver planned
+    /// for it, without allocating.
+    pub fn set_alpha(&mut self, alpha: f32) {
+        let Dims { w, h } = self.dims;
         let eig =
             |k: usize, n: usize| 2.0 - 2.0 * (std::f64::consts::PI * k as f64 / n as f64).cos();
         let ly: Vec<f64> = (0..h).map(|k| eig(k, h)).collect();
         let alpha2 = f64::from(alpha) * f64::from(alpha);
         let scale = 4.0 / (w as f64 * h as f64);
-        let mut inv_eigen = try_vec(w * h, 0.0f32)?;
-        for x in 0..w {
+        for (x, column) in self.inv_eigen.chunks_mut(h).enumerate() {
             let lx = eig(x, w);
-            for y in 0..h {
+            for (y, v) in column.iter_mut().enumerate() {
                 let denom = alpha2 + lx + ly[y];
-                inv_eigen[x * h + y] = if denom > 0.0 {
+                *v = if denom > 0.0 {
                     (scale / denom) as f32
                 } else {
                     0.0
                 };
             }
         }
-        Ok(DctPoisson {
-            dims,
-            rows,
-            cols,
-            inv_eigen,
-            // The three colour planes every caller solves for, allocated with the plan (an
-            // execution then allocates nothing large).
-            transposed: try_vec(3 * dims.len(), 0.0)?,
-        })
     }
 
     /// Solves in place for every plane of `planes` (a multiple of `w * h` values).

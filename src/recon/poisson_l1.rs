@@ -502,6 +502,40 @@ impl PoissonL1 {
         })
     }
 
+    /// Makes this the solve planned for `config`, which must differ from the planned one in
+    /// `alpha`, `reweight_steps` and `step_change` at most (what the combiner's two candidates
+    /// differ in): one plan then serves both, and each execution gives the same bits as a plan
+    /// made for its configuration (`reconfigured_solve_is_a_fresh_one`).
+    // The combiner is its only caller, and it needs ONNX Runtime (the `gradnet` feature).
+    #[cfg_attr(not(feature = "gradnet"), allow(dead_code))]
+    pub(crate) fn reconfigure(&mut self, config: PoissonL1Config) {
+        let comparable = |c: &PoissonL1Config| PoissonL1Config {
+            alpha: 0.0,
+            reweight_steps: 0,
+            step_change: 0.0,
+            ..*c
+        };
+        assert_eq!(
+            comparable(&config),
+            comparable(&self.cfg),
+            "a reconfigured L1 solve may change alpha, reweight_steps and step_change only"
+        );
+        assert_eq!(
+            config.step_change > 0.0 || config.cg_relative > 0.0,
+            !self.before.is_empty(),
+            "a reconfigured L1 solve keeps its step_change buffer"
+        );
+        if config.alpha != self.cfg.alpha {
+            for dct in [self.precond.as_mut(), self.start.as_mut()]
+                .into_iter()
+                .flatten()
+            {
+                dct.set_alpha(config.alpha);
+            }
+        }
+        self.cfg = config;
+    }
+
     /// Unit weights (step 0), with the rows that do not exist (last column of `x`, last row
     /// of `y`) at weight 0 so that every later pass can ignore the boundary.
     fn reset_weights(&mut self) {
@@ -1026,6 +1060,36 @@ mod tests {
             .reconstruct_into(frame, &mut out, &mut report, &Progress::none())
             .unwrap();
         (out, report.notes.join("; "))
+    }
+
+    /// One plan reconfigured between the combiner's two candidates gives each the bits of a
+    /// plan made for it.
+    #[test]
+    fn reconfigured_solve_is_a_fresh_one() {
+        let noisy = synthetic_frame(96, 64, 16.0, 5);
+        let strong = PoissonL1Config {
+            alpha: 2.5,
+            step_change: 1e-3,
+            ..PoissonL1Config::prior()
+        };
+        let weak = PoissonL1Config {
+            alpha: 0.5,
+            reweight_steps: 9,
+            ..strong
+        };
+        let run = |solve: &mut PoissonL1| {
+            let mut out = Image::zeros(3, 96, 64);
+            solve
+                .reconstruct_into(&noisy, &mut out, &mut Report::default(), &Progress::none())
+                .unwrap();
+            out
+        };
+        let mut shared = PoissonL1::new(strong, 96, 64).unwrap();
+        for config in [strong, weak, strong] {
+            shared.reconfigure(config);
+            let fresh = run(&mut PoissonL1::new(config, 96, 64).unwrap());
+            assert_eq!(run(&mut shared), fresh, "alpha {}", config.alpha);
+        }
     }
 
     /// The steps skipped after a fixed point are the ones that would have changed nothing:
