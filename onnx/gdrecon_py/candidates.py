@@ -11,9 +11,10 @@ For every bundle `<folder>/<stem>.exr` and every candidate below this writes
     l1weak   the same with a weak data term (`-p prior_alpha=0.5`), which follows the gradients
              further
 
-The options each candidate was computed with are kept in `<folder>/candidates/options.json`;
-a candidate whose options changed since is computed again (a stale file would train or
-evaluate the network on inputs the library no longer gives it).
+The options each candidate was computed with are kept in `<folder>/candidates/options.json`,
+with the library's output rule (OUTPUT); a candidate whose options changed since, or every
+candidate when the rule did, is computed again (a stale file would train or evaluate the
+network on inputs the library no longer gives it).
 
   $GDRECON_PYTHON -m gdrecon_py.candidates ~/.cache/gdrecon/data/val [--gdrecon target/release/gdrecon]
 """
@@ -30,6 +31,10 @@ import time
 # was trained on candidates without it (every IRLS step run); with it they differ by under
 # 0.3 % relMSE on every validation and test frame.
 STEP_CHANGE = "0.001"
+
+# What the library does to every output after its method (src/recon/mod.rs, `repair`); the
+# candidates of a folder recorded under another rule are all computed again.
+OUTPUT = "non-finite values replaced by the base colour, negative values by 0"
 
 CANDIDATES = {
     "prior": ["-m", "prior"],
@@ -62,8 +67,10 @@ def main(argv=None):
             with open(record) as f:
                 done = json.load(f)
         except FileNotFoundError:
-            # Files from before the record ran every IRLS step: only the prior is current.
-            done = {"prior": CANDIDATES["prior"]}
+            done = {}
+        if done.get("output") != OUTPUT:
+            # Computed before the rule (negative values kept), or with no record at all.
+            done = {}
         stale = {name for name, opts in CANDIDATES.items() if done.get(name) != opts}
         with open(record + ".tmp", "w") as f:
             json.dump({k: v for k, v in done.items() if k not in stale}, f, indent=1)
@@ -80,7 +87,7 @@ def main(argv=None):
                 os.replace(tmp, out)
                 n += 1
         with open(record + ".tmp", "w") as f:
-            json.dump(CANDIDATES, f, indent=1)
+            json.dump({"output": OUTPUT, **CANDIDATES}, f, indent=1)
         os.replace(record + ".tmp", record)
     print(f"{n} candidates written in {time.time() - t0:.0f} s")
 

@@ -651,8 +651,12 @@ mod enabled {
                 let mut inner = Report::default();
                 report.time(name, || {
                     solve.reconstruct_into(&on_prior, output, &mut inner, progress)?;
-                    // As `l1 --preset prior` gives it (the plan sets negative values to 0),
-                    // which is how the training data's candidates were made.
+                    // As `l1 --preset prior` now gives it (the plan sets negative values to
+                    // 0), which is what `candidates.py` reads. The shipped network was trained
+                    // on candidates from before that rule (0.16 % of the weak candidate's
+                    // training values negative, 0.03 % on validation); with them clamped its
+                    // validation figures held or improved (`docs/benchmarks.md`, twenty-second
+                    // session).
                     output
                         .as_mut_slice()
                         .par_iter_mut()
