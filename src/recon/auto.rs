@@ -5,7 +5,7 @@
 //!    the prior** (preset `prior`) when the combiner cannot run (built without ONNX Runtime,
 //!    the runtime or the model not found, or the frame lacks variance, albedo or normal) or
 //!    `use_combiner` is false; taken when the frame has a `prior` layer or Open Image Denoise
-//!    can be loaded. On the validation split the combiner is 0.77 / 0.78 / 0.68x OIDN alone
+//!    can be loaded. On the validation split the combiner is 0.77 / 0.77 / 0.67x OIDN alone
 //!    (geometric mean at 4 / 16 / 64 spp) with no frame above 1.03x; L1 on the prior 0.88 /
 //!    0.86 / 0.80x (worst 1.03x); both better than every method without a prior (the best of
 //!    them, GradNet, is 1.61 / 1.02 / 1.06x OIDN there). The combiner became the default in
@@ -297,7 +297,7 @@ impl Auto {
     /// Plans the prior path when `use_prior` is set (its buffers, not OIDN, which is loaded
     /// by the first frame that needs it), so that its allocation fails here rather than in an
     /// execute, and does not delay a cancel of the first frame (making a 1280 x 720 L1 plan
-    /// writes 140 MB: 70 ms; the combiner's, with two of them and ONNX Runtime's session, 0.2
+    /// writes 140 MB: 70 ms; the combiner's, with one and ONNX Runtime's session, about 0.2
     /// s): the combiner when `use_combiner` is set and it can be planned (else why not is
     /// kept for the notes), L1 on the prior otherwise. The other paths depend on the frames
     /// and are planned by the first frame that takes them.

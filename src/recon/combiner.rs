@@ -284,7 +284,7 @@ mod enabled {
     use crate::recon::gradnet::tiles::{self, Overlap, Tile};
     use crate::recon::poisson_l1::{PoissonL1, PoissonL1Config};
     use crate::recon::prior::{anchored, Prior, Quality};
-    use crate::recon::{Method, Reconstructor};
+    use crate::recon::{repair, Method, Reconstructor};
     use crate::report::{Report, Stage};
 
     /// Padding multiple of the graph's input (two 2 x 2 poolings).
@@ -667,16 +667,13 @@ mod enabled {
                 let mut inner = Report::default();
                 report.time(name, || {
                     solve.reconstruct_into(&on_prior, output, &mut inner, progress)?;
-                    // As `l1 --preset prior` now gives it (the plan sets negative values to
-                    // 0), which is what `candidates.py` reads. The shipped network was trained
+                    // As `l1 --preset prior` gives it (its plan's `repair`: non-finite values
+                    // the base colour, negative ones 0), which is what `candidates.py` reads. The shipped network was trained
                     // on candidates from before that rule (0.16 % of the weak candidate's
                     // training values negative, 0.03 % on validation); with them clamped its
                     // validation figures held or improved (`docs/benchmarks.md`, twenty-second
                     // session).
-                    output
-                        .as_mut_slice()
-                        .par_iter_mut()
-                        .for_each(|v| *v = v.max(0.0));
+                    repair(output, frame.color());
                     Ok::<_, Error>(())
                 })?;
                 report

@@ -587,7 +587,7 @@ fn address_space_left() -> Option<u64> {
 /// the test split it took `l1`'s `lamps` 4 spp from 1.46x its base image's relMSE to 0.45x
 /// (a pixel of -17.7 beside a bulb) and the combiner's from 0.74x OIDN's to 0.25x
 /// (`docs/benchmarks.md`, twenty-second session). Returns how many of each it replaced.
-fn repair(out: &mut Image, base: &Image) -> (u64, u64) {
+pub(crate) fn repair(out: &mut Image, base: &Image) -> (u64, u64) {
     out.as_mut_slice()
         .par_iter_mut()
         .zip(base.as_slice().par_iter())
