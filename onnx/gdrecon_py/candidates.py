@@ -9,7 +9,10 @@ For every bundle `<folder>/<stem>.exr` and every candidate below this writes
     l1prior  screened Poisson L1 on the prior (`-m l1 --preset prior`), its IRLS stopped once a
              step moves the image by less than STEP_CHANGE (the combiner's `step_change`)
     l1weak   the same with a weak data term (`-p prior_alpha=0.5`), which follows the gradients
-             further
+             further, multigrid-preconditioned (the preset's Jacobi is slow there)
+
+Each names its preconditioner, as the combiner's candidates do (src/recon/combiner.rs,
+`candidates`), so that a change of the preset's shows in the options below.
 
 The options each candidate was computed with are kept in `<folder>/candidates/options.json`,
 with the library's output rule (OUTPUT); a candidate whose options changed since, or every
@@ -38,9 +41,10 @@ OUTPUT = "non-finite values replaced by the base colour, negative values by 0"
 
 CANDIDATES = {
     "prior": ["-m", "prior"],
-    "l1prior": ["-m", "l1", "--preset", "prior", "-p", f"step_change={STEP_CHANGE}"],
+    "l1prior": ["-m", "l1", "--preset", "prior", "-p", f"step_change={STEP_CHANGE}",
+                "-p", "preconditioner=jacobi"],
     "l1weak": ["-m", "l1", "--preset", "prior", "-p", "prior_alpha=0.5",
-               "-p", f"step_change={STEP_CHANGE}"],
+               "-p", f"step_change={STEP_CHANGE}", "-p", "preconditioner=multigrid"],
 }
 
 
