@@ -453,8 +453,9 @@ pub(crate) struct PoissonL1 {
     wd: Vec<f32>,
     wx: Vec<f32>,
     wy: Vec<f32>,
-    /// Diagonal scaling of the preconditioner: `sqrt(diag(L) / diag(A))`, with `L` the
-    /// unweighted operator the DCT inverts and `A` the weighted one.
+    /// Diagonal scaling of the DCT preconditioner: `sqrt(diag(L) / diag(A))`, with `L` the
+    /// unweighted operator the DCT inverts and `A` the weighted one; with Jacobi,
+    /// `1 / diag(A)`.
     scale: Vec<f32>,
     partials: Vec<f64>,
     /// Row partials of two sums at once (see [`Self::step`]).
