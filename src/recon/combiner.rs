@@ -364,8 +364,8 @@ mod enabled {
     pub(crate) struct Combiner {
         prior: Prior,
         /// L1 on the prior, planned once and reconfigured for each candidate in turn (their
-        /// settings differ in the data term's weight and the step count only; one plan's
-        /// buffers instead of two: 1.2 GB less at 3840 x 2160).
+        /// settings differ in the data term's weight, the step count and the preconditioner
+        /// only; one plan's buffers instead of two: 1.2 GB less at 3840 x 2160).
         solve: PoissonL1,
         /// The strong and the weak candidate's settings.
         candidates: [PoissonL1Config; 2],
@@ -671,11 +671,11 @@ mod enabled {
                 report.time(name, || {
                     solve.reconstruct_into(&on_prior, output, &mut inner, progress)?;
                     // As `l1 --preset prior` gives it (its plan's `repair`: non-finite values
-                    // the base colour, negative ones 0), which is what `candidates.py` reads. The shipped network was trained
-                    // on candidates from before that rule (0.16 % of the weak candidate's
-                    // training values negative, 0.03 % on validation); with them clamped its
-                    // validation figures held or improved (`docs/benchmarks.md`, twenty-second
-                    // session).
+                    // the base colour, negative ones 0), which is what `candidates.py` reads.
+                    // The shipped network was trained on candidates from before that rule
+                    // (0.16 % of the weak candidate's training values negative, 0.03 % on
+                    // validation); with them clamped its validation figures held or improved
+                    // (`docs/benchmarks.md`, twenty-second session).
                     repair(output, frame.color());
                     Ok::<_, Error>(())
                 })?;

@@ -844,16 +844,11 @@ impl PoissonL1 {
         per_channel(&self.partials)
     }
 
-    /// CG is preconditioned by the inverse diagonal ([`Self::scale`] holds it).
-    fn jacobi(&self) -> bool {
-        self.cfg.preconditioner() == Some(Preconditioner::Jacobi)
-    }
-
     /// Recomputes [`Self::scale`] from the current weights (zero at missing rows).
     fn update_scale(&mut self) {
         let Dims { w, h } = self.dims;
         let alpha2 = self.cfg.alpha * self.cfg.alpha;
-        let jacobi = self.jacobi();
+        let jacobi = self.cfg.preconditioner() == Some(Preconditioner::Jacobi);
         let (wd, wx, wy) = (&self.wd, &self.wx, &self.wy);
         self.scale
             .par_chunks_mut(w)
