@@ -84,8 +84,10 @@ def calibration_inputs(files, use_features):
 
 
 def quantize(model, out, feeds, activation="u8", fmt="qdq", exclude=(), method="minmax",
-             per_channel=True, reduce_range=False):
-    """Static quantisation of `model` to `out` with `feeds` as calibration data."""
+             per_channel=True, reduce_range=False, overrides=None):
+    """Static quantisation of `model` to `out` with `feeds` as calibration data. `overrides`:
+    {tensor name: [{"scale": float32, "zero_point": uint8}]}, ranges that calibration does not
+    set (ONNX Runtime's TensorQuantOverrides; `qat.py` passes the ranges it tuned for)."""
     from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat,
                                           QuantType, quantize_static)
 
@@ -108,7 +110,8 @@ def quantize(model, out, feeds, activation="u8", fmt="qdq", exclude=(), method="
                         per_channel=per_channel, reduce_range=reduce_range,
                         activation_type=acts[activation], weight_type=QuantType.QInt8,
                         nodes_to_exclude=list(exclude), calibrate_method=methods[method],
-                        extra_options={"WeightSymmetric": True, "ActivationSymmetric": False})
+                        extra_options={"WeightSymmetric": True, "ActivationSymmetric": False,
+                                       **({"TensorQuantOverrides": overrides} if overrides else {})})
     # keep the source's metadata (mu, data_channels, size_multiple, ...) and say what this is
     src_m = onnx.load(model)
     m = onnx.load(out)

@@ -398,10 +398,11 @@ def test_int8_close_to_fp32_on_sample_frame():
     a = pl.reconstruct(fr, pl.ort_runner(os.path.join(ONNX_DIR, "gradnet.onnx")))
     b = pl.reconstruct(fr, pl.ort_runner(INT8))
     assert np.isfinite(b).all()
-    # measured (GPU-trained model, Percentile calibration): 8.4e-5 against fp32; against the
-    # reference 6.87e-4 vs fp32 6.37e-4 (+7.9 %: int8's cost grows as the fp32 error shrinks,
-    # docs/gradnet.md "Reduced precision")
+    # measured (the quantisation-aware graph, twenty-fourth session): against the reference
+    # 7.33e-4 vs fp32 6.37e-4 (+15 %; the post-training graph before it: +7.9 %). Its cost is
+    # mixed per frame: lower on both splits' geometric means and worst frames, higher on
+    # cornell-like frames such as this one (docs/gradnet.md, "Reduced precision")
     assert relmse(b, a) < 1e-3
     if "reference" in fr:
         ref = fr["reference"]
-        assert relmse(b, ref) < 1.12 * relmse(a, ref)
+        assert relmse(b, ref) < 1.2 * relmse(a, ref)
