@@ -88,6 +88,19 @@ def read(path):
     return meta, arrays
 
 
+def read_train(paths):
+    """Training packs -> {frame size: float16 array}, the packs' frames of each size stacked.
+    Refuses a pack that is not a training pack."""
+    out = {}
+    for path in paths:
+        meta, arrays = read(path)
+        if meta.get("kind") != "train":
+            raise SystemExit(f"{path}: not a training pack")
+        for k, a in arrays.items():
+            out[k] = np.concatenate([out[k], a]) if k in out else a
+    return out
+
+
 def _bundles(dirs, part="0/1"):
     """Bundles in `dirs` (sorted per folder); `part` "I/N" keeps every N-th from the I-th (packs
     that must travel separately)."""

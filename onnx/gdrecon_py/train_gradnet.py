@@ -318,13 +318,7 @@ def main(argv=None):
     torch.backends.cudnn.benchmark = True
     os.makedirs(args.out, exist_ok=True)
 
-    tarr = {}
-    for path in args.train:
-        tmeta, arrays = pack.read(path)
-        if tmeta.get("kind") != "train":
-            raise SystemExit(f"{path}: not a training pack")
-        for k, a in arrays.items():
-            tarr[k] = np.concatenate([tarr[k], a]) if k in tarr else a
+    tarr = pack.read_train(args.train)
     vframes = []
     if args.val:
         vmeta, varr = pack.read(args.val)
