@@ -6,7 +6,8 @@
 //! radiance, falling as `1/sqrt(spp)`, with rare fireflies), and the gradients are the exact
 //! forward differences of the reference plus noise about three times smaller (random replay
 //! correlates the base and offset paths), with rare gradient outliers. Features (albedo,
-//! normal, depth) are exact and noise-free; the variance layer is the noise model's variance.
+//! normal, depth) are exact and noise-free; the variance layer is the noise model's variance,
+//! fireflies included (a renderer's sample variance sees them).
 //! The generator is deterministic for a seed. It is no substitute for real renders, only a
 //! frame whose answer is known.
 
@@ -120,11 +121,18 @@ pub fn synthetic_frame(width: usize, height: usize, spp: f32, seed: u64) -> Fram
                 let r = reference.at(c, x, y);
                 let s = sigma(r);
                 let mut v = r + s * rng.normal();
+                let mut var = s * s;
                 if rng.uniform() < 2e-4 {
-                    v += 50.0 * rng.uniform();
+                    // A firefly adds f to the pixel's mean: one of its spp samples carried
+                    // f * spp, so the samples' variance of the mean (what a renderer writes)
+                    // grows by about f^2. Without it the layer would call the spike certain
+                    // and a noise band would keep it.
+                    let f = 50.0 * rng.uniform();
+                    v += f;
+                    var += f * f;
                 }
                 color.planes_mut()[[c, y, x]] = v.max(0.0);
-                variance.planes_mut()[[c, y, x]] = s * s;
+                variance.planes_mut()[[c, y, x]] = var;
             }
         }
     }
