@@ -87,58 +87,74 @@ pub(crate) struct RowWeights<'a> {
     pub y: &'a [f32],
 }
 
-/// `out = alpha2 * wd * u + D_x^T (wx * D_x u) + D_y^T (wy * D_y u)`, one plane; returns
-/// `u . out` (f64, fixed order), which conjugate gradients needs next.
+/// `out = alpha2 * wd * u + D_x^T (wx * D_x u) + D_y^T (wy * D_y u)` on each of the three
+/// planes of `u`, each row then handed to `finish(plane, y, row, u_row)`, which may rewrite
+/// it (a residual) and returns the row's share of a per-plane sum (f64, rows added in order,
+/// a fixed order): conjugate gradients needs `u . out` or `r . r` next, and gets it without
+/// another pass over memory.
 ///
 /// Written edge by edge with the boundary rows and columns outside the inner loops, so the
-/// loops are branch-free and vectorise.
-pub(crate) fn apply_weighted_dot(
+/// loops are branch-free and vectorise. The three planes' rows are done together, so a row's
+/// weights are read from memory once. `partials` is scratch reused between calls.
+pub(crate) fn apply_weighted(
     u: &[f32],
     alpha2: f32,
     wt: &RowWeights,
     d: Dims,
     out: &mut [f32],
-    partials: &mut Vec<f64>,
-) -> f64 {
+    partials: &mut Vec<[f64; 3]>,
+    finish: impl Fn(usize, usize, &mut [f32], &[f32]) -> f64 + Sync,
+) -> [f64; 3] {
     let Dims { w, h } = d;
-    out.par_chunks_mut(w)
+    let n = w * h;
+    let (o0, rest) = out.split_at_mut(n);
+    let (o1, o2) = rest.split_at_mut(n);
+    o0.par_chunks_mut(w)
+        .zip(o1.par_chunks_mut(w))
+        .zip(o2.par_chunks_mut(w))
         .enumerate()
-        .map(|(y, row)| {
+        .map(|(y, ((r0, r1), r2))| {
             let o = y * w;
-            let ur = &u[o..o + w];
             let wd = &wt.data[o..o + w];
             let wx = &wt.x[o..o + w];
-            for ((v, &c), &k) in row.iter_mut().zip(ur).zip(wd) {
-                *v = alpha2 * k * c;
-            }
-            // Horizontal edges (x, x+1), x < w - 1, each with flux wx[x] (u[x+1] - u[x]).
-            if w >= 2 {
-                row[0] -= wx[0] * (ur[1] - ur[0]);
-                row[w - 1] += wx[w - 2] * (ur[w - 1] - ur[w - 2]);
-                for ((v, u3), k2) in row[1..w - 1]
-                    .iter_mut()
-                    .zip(ur.windows(3))
-                    .zip(wx.windows(2))
-                {
-                    *v += k2[0] * (u3[1] - u3[0]) - k2[1] * (u3[2] - u3[1]);
+            let mut dots = [0.0; 3];
+            for (plane, row) in [r0, r1, r2].into_iter().enumerate() {
+                let u = &u[plane * n..(plane + 1) * n];
+                let ur = &u[o..o + w];
+                for ((v, &c), &k) in row.iter_mut().zip(ur).zip(wd) {
+                    *v = alpha2 * k * c;
                 }
-            }
-            if y >= 1 {
-                let (up, wy) = (&u[o - w..o], &wt.y[o - w..o]);
-                for (((v, &c), &a), &k) in row.iter_mut().zip(ur).zip(up).zip(wy) {
-                    *v += k * (c - a);
+                // Horizontal edges (x, x+1), x < w - 1, each with flux wx[x] (u[x+1] - u[x]).
+                if w >= 2 {
+                    row[0] -= wx[0] * (ur[1] - ur[0]);
+                    row[w - 1] += wx[w - 2] * (ur[w - 1] - ur[w - 2]);
+                    for ((v, u3), k2) in row[1..w - 1]
+                        .iter_mut()
+                        .zip(ur.windows(3))
+                        .zip(wx.windows(2))
+                    {
+                        *v += k2[0] * (u3[1] - u3[0]) - k2[1] * (u3[2] - u3[1]);
+                    }
                 }
-            }
-            if y + 1 < h {
-                let (dn, wy) = (&u[o + w..o + 2 * w], &wt.y[o..o + w]);
-                for (((v, &c), &b), &k) in row.iter_mut().zip(ur).zip(dn).zip(wy) {
-                    *v -= k * (b - c);
+                if y >= 1 {
+                    let (up, wy) = (&u[o - w..o], &wt.y[o - w..o]);
+                    for (((v, &c), &a), &k) in row.iter_mut().zip(ur).zip(up).zip(wy) {
+                        *v += k * (c - a);
+                    }
                 }
+                if y + 1 < h {
+                    let (dn, wy) = (&u[o + w..o + 2 * w], &wt.y[o..o + w]);
+                    for (((v, &c), &b), &k) in row.iter_mut().zip(ur).zip(dn).zip(wy) {
+                        *v -= k * (b - c);
+                    }
+                }
+                dots[plane] = finish(plane, y, row, ur);
             }
-            row.iter().zip(ur).map(|(&a, &b)| a * b).sum::<f32>() as f64
+            dots
         })
         .collect_into_vec(partials);
-    partials.iter().sum()
+    // Rows in order within each plane.
+    std::array::from_fn(|c| partials.iter().map(|p| p[c]).sum())
 }
 
 /// Sums of `f(a_i, b_i)` per plane of `plane_len` values, in f64, in a fixed order.

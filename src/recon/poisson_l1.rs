@@ -43,7 +43,7 @@ use rayon::prelude::*;
 use super::band::{self, banded, NOISE_BAND};
 use super::dct::DctPoisson;
 use super::multigrid::{multigrid_bytes, Multigrid};
-use super::ops::{apply_weighted_dot, plane_sums, Dims, RowWeights};
+use super::ops::{apply_weighted, plane_sums, Dims, RowWeights};
 use super::param::{choices, Param, Params, Preset, Range};
 use super::poisson_l2::{ALPHA_RANGE, DEFAULT_ALPHA};
 use super::prior::{prior_memory, DataTerm, OnPrior, DATA_DOC, PRIOR_ALPHA_DOC};
@@ -458,6 +458,8 @@ pub(crate) struct PoissonL1 {
     /// `1 / diag(A)`.
     scale: Vec<f32>,
     partials: Vec<f64>,
+    /// Per-row dot products of the three planes, scratch of [`Self::apply`].
+    row_dots: Vec<[f64; 3]>,
     /// Row partials of two sums at once (see [`Self::step`]).
     pairs: Vec<(f64, f64)>,
     /// Time spent in the preconditioner during the current execution (for the report).
@@ -527,6 +529,7 @@ impl PoissonL1 {
             wy: try_vec(n, 1.0)?,
             scale: try_vec(n, 1.0)?,
             partials: Vec::new(),
+            row_dots: Vec::new(),
             pairs: Vec::new(),
             precond_time: Duration::ZERO,
             skip_repeats: true,
@@ -648,7 +651,8 @@ impl PoissonL1 {
         let mean = self.partials.iter().sum::<f64>() / rows as f64;
         let s = (1.0 / mean) as f32;
         for v in [&mut self.wd, &mut self.wx, &mut self.wy] {
-            v.par_iter_mut().for_each(|w| *w *= s);
+            v.par_chunks_mut(w)
+                .for_each(|row| row.iter_mut().for_each(|w| *w *= s));
         }
     }
 
@@ -697,39 +701,44 @@ impl PoissonL1 {
 
     /// `dst = A src` per channel; returns `src . dst`.
     fn apply(&mut self, src: &[f32], dst: &mut [f32]) -> [f64; 3] {
-        let n = self.dims.len();
         let wt = RowWeights {
             data: &self.wd,
             x: &self.wx,
             y: &self.wy,
         };
         let alpha2 = self.cfg.alpha * self.cfg.alpha;
-        let mut out = [0.0; 3];
-        for (c, (s, d)) in src.chunks(n).zip(dst.chunks_mut(n)).enumerate() {
-            out[c] = apply_weighted_dot(s, alpha2, &wt, self.dims, d, &mut self.partials);
-        }
-        out
+        apply_weighted(
+            src,
+            alpha2,
+            &wt,
+            self.dims,
+            dst,
+            &mut self.row_dots,
+            |_, _, row, u| f64::from(row.iter().zip(u).map(|(&a, &b)| a * b).sum::<f32>()),
+        )
     }
 
-    /// `r = b - A x`; returns `r . r` per channel.
+    /// `r = b - A x`, in the same pass as `A x`; returns `r . r` per channel.
     fn residual(&mut self) -> [f64; 3] {
-        let (x, mut q) = (std::mem::take(&mut self.x), std::mem::take(&mut self.q));
-        self.apply(&x, &mut q);
-        (self.x, self.q) = (x, q);
-        let w = self.dims.w;
-        self.r
-            .par_chunks_mut(w)
-            .zip(self.b.par_chunks(w).zip(self.q.par_chunks(w)))
-            .map(|(r, (b, q))| {
-                let mut rr = 0.0f32;
-                for ((r, &b), &q) in r.iter_mut().zip(b).zip(q) {
-                    *r = b - q;
-                    rr += *r * *r;
-                }
-                f64::from(rr)
-            })
-            .collect_into_vec(&mut self.partials);
-        per_channel(&self.partials)
+        let wt = RowWeights {
+            data: &self.wd,
+            x: &self.wx,
+            y: &self.wy,
+        };
+        let alpha2 = self.cfg.alpha * self.cfg.alpha;
+        let Dims { w, h } = self.dims;
+        let b = &self.b;
+        let finish = |plane: usize, y: usize, row: &mut [f32], _: &[f32]| {
+            let o = plane * w * h + y * w;
+            let mut rr = 0.0f32;
+            for (r, &b) in row.iter_mut().zip(&b[o..o + w]) {
+                *r = b - *r;
+                rr += *r * *r;
+            }
+            f64::from(rr)
+        };
+        let (x, r) = (&self.x, &mut self.r);
+        apply_weighted(x, alpha2, &wt, self.dims, r, &mut self.row_dots, finish)
     }
 
     /// `x += a p`, `r -= a q` (per-channel `a`); returns `r . r` per channel and, per
@@ -805,13 +814,9 @@ impl PoissonL1 {
             return per_channel(&self.partials);
         }
         if let (Preconditioner::Multigrid, Some(mg)) = (kind, self.multigrid.as_mut()) {
-            mg.apply(&self.r, &mut self.z);
-            let (r, z) = (&self.r, &self.z);
-            let rz = plane_sums(r, z, w, n, &mut self.partials, |a, b| {
-                f64::from(a) * f64::from(b)
-            });
+            let rz = mg.apply(&self.r, &mut self.z);
             self.precond_time += t0.elapsed();
-            return [rz[0], rz[1], rz[2]];
+            return rz;
         }
         let s = &self.scale;
         self.z
@@ -905,7 +910,6 @@ impl PoissonL1 {
         min_move: f64,
         progress: &dyn Fn(f64) -> Result<()>,
     ) -> Result<CgOutcome> {
-        let n = self.dims.len();
         let tol2 = f64::from(self.cfg.cg_tolerance).powi(2);
         let change2 = f64::from(self.cfg.cg_change).max(min_move).powi(2);
         let bb = bb.map(|v| v.max(f64::MIN_POSITIVE));
@@ -956,14 +960,16 @@ impl PoissonL1 {
                 }
             });
             rz = rz_new;
+            let h = self.dims.h;
             self.p
-                .par_chunks_mut(n)
-                .zip(self.z.par_chunks(n))
-                .zip(beta.par_iter())
-                .for_each(|((p, z), &beta)| {
-                    p.par_iter_mut()
-                        .zip(z.par_iter())
-                        .for_each(|(p, &z)| *p = z + beta * *p);
+                .par_chunks_mut(self.dims.w)
+                .zip(self.z.par_chunks(self.dims.w))
+                .enumerate()
+                .for_each(|(row, (p, z))| {
+                    let beta = beta[row / h];
+                    for (p, &z) in p.iter_mut().zip(z) {
+                        *p = z + beta * *p;
+                    }
                 });
         }
         Ok(CgOutcome {
