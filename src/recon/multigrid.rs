@@ -633,14 +633,9 @@ fn relax_kernel(cur: [&mut [f32]; 3], rows: [[&[f32]; 3]; 3], weights: [&[f32]; 
     }
     let [x0, x1, x2] = cur;
     let mut planes = [(x0, rows[0]), (x1, rows[1]), (x2, rows[2])];
-    // The row's two ends, from the values before the pass.
-    let ends = planes.each_ref().map(|(cur, [b, up, down])| {
-        let vertical = |i: usize| b[i] + ey_up[i] * up[i] + ey_down[i] * down[i];
-        (
-            (vertical(0) + ex[0] * cur[1]) * inv[0],
-            (vertical(w - 1) + ex[w - 2] * cur[w - 2]) * inv[w - 1],
-        )
-    });
+    let ends = planes
+        .each_ref()
+        .map(|(cur, rows)| row_ends(cur, *rows, [ey_up, ey_down, ex, inv]));
     let mut s = 1;
     while s + LANES < w {
         let block = |v: &[f32], from: usize| -> [f32; LANES] {
@@ -667,42 +662,51 @@ fn relax_kernel(cur: [&mut [f32]; 3], rows: [[&[f32]; 3]; 3], weights: [&[f32]; 
         }
         s += LANES;
     }
-    for ((cur, [b, up, down]), (first, last)) in planes.iter_mut().zip(ends) {
-        for i in s..w - 1 {
-            let t = b[i] + ey_up[i] * up[i] + ey_down[i] * down[i];
-            let t = t + (ex[i - 1] * cur[i - 1] + ex[i] * cur[i + 1]);
-            if keep[i] {
-                cur[i] = t * inv[i];
-            }
-        }
-        if keep[0] {
-            cur[0] = first;
-        }
-        if keep[w - 1] {
-            cur[w - 1] = last;
-        }
+    for ((cur, rows), ends) in planes.iter_mut().zip(ends) {
+        relax_from(cur, *rows, [ey_up, ey_down, ex, inv], keep, s, ends);
     }
 }
 
 /// [`relax_kernel`] on one plane, cell by cell (for rows of up to [`LANES`] + 1 cells).
 fn relax_narrow(cur: &mut [f32], rows: [&[f32]; 3], weights: [&[f32]; 4], keep: &[bool]) {
-    let w = keep.len();
-    let [b, up, down] = rows;
-    let [ey_up, ey_down, ex, inv] = weights;
-    let vertical = |i: usize| b[i] + ey_up[i] * up[i] + ey_down[i] * down[i];
-    if w < 2 {
-        if w == 1 && keep[0] {
-            cur[0] = vertical(0) * inv[0];
+    if keep.len() < 2 {
+        let ([b, up, down], [ey_up, ey_down, _, inv]) = (rows, weights);
+        if keep.first() == Some(&true) {
+            cur[0] = (b[0] + ey_up[0] * up[0] + ey_down[0] * down[0]) * inv[0];
         }
         return;
     }
-    // The ends from the values before the pass, as the wide rows take them.
-    let (first, last) = (
+    let ends = row_ends(cur, rows, weights);
+    relax_from(cur, rows, weights, keep, 1, ends);
+}
+
+/// The new values of a row's first and last cells (at least two), from the values before the
+/// half-sweep (see [`relax_kernel`] for `rows` and `weights`).
+fn row_ends(cur: &[f32], rows: [&[f32]; 3], weights: [&[f32]; 4]) -> (f32, f32) {
+    let ([b, up, down], [ey_up, ey_down, ex, inv]) = (rows, weights);
+    let w = cur.len();
+    let vertical = |i: usize| b[i] + ey_up[i] * up[i] + ey_down[i] * down[i];
+    (
         (vertical(0) + ex[0] * cur[1]) * inv[0],
         (vertical(w - 1) + ex[w - 2] * cur[w - 2]) * inv[w - 1],
-    );
-    for i in 1..w - 1 {
-        let t = vertical(i) + (ex[i - 1] * cur[i - 1] + ex[i] * cur[i + 1]);
+    )
+}
+
+/// Relaxes the cells `from..w - 1` of a row one by one, then stores its `ends` (from
+/// [`row_ends`]) where `keep`.
+fn relax_from(
+    cur: &mut [f32],
+    rows: [&[f32]; 3],
+    weights: [&[f32]; 4],
+    keep: &[bool],
+    from: usize,
+    (first, last): (f32, f32),
+) {
+    let ([b, up, down], [ey_up, ey_down, ex, inv]) = (rows, weights);
+    let w = keep.len();
+    for i in from..w - 1 {
+        let t = b[i] + ey_up[i] * up[i] + ey_down[i] * down[i];
+        let t = t + (ex[i - 1] * cur[i - 1] + ex[i] * cur[i + 1]);
         if keep[i] {
             cur[i] = t * inv[i];
         }
