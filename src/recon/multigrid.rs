@@ -184,12 +184,9 @@ impl Multigrid {
     /// per plane (as [`super::ops::plane_sums`] would, bit for bit), summed in the cycle's
     /// last pass while each row of `z` is still in cache.
     pub fn apply(&mut self, r: &[f32], z: &mut [f32]) -> [f64; 3] {
-        let mut rows = std::mem::take(&mut self.row_dots);
-        cycle(&mut self.levels, z, r, Some(&mut rows));
+        cycle(&mut self.levels, z, r, Some(&mut self.row_dots));
         // Rows in order within each plane, as `plane_sums` adds them.
-        let dots = std::array::from_fn(|c| rows.iter().skip(c).step_by(3).sum());
-        self.row_dots = rows;
-        dots
+        std::array::from_fn(|c| self.row_dots.iter().skip(c).step_by(3).sum())
     }
 }
 
@@ -204,7 +201,7 @@ fn cycle(levels: &mut [Level], x: &mut [f32], b: &[f32], dots: Option<&mut [f64]
         }
         if let Some(dots) = dots {
             for (d, (&x, &b)) in dots.iter_mut().zip(x.iter().zip(b)) {
-                *d = [f64::from(x) * f64::from(b)].into_iter().sum();
+                *d = f64::from(x) * f64::from(b);
             }
         }
         return;
@@ -623,19 +620,20 @@ fn residual_kernel(out: &mut [f32], rows: [&[f32]; 8]) {
 ))]
 fn relax_kernel(cur: [&mut [f32]; 3], rows: [[&[f32]; 3]; 3], weights: [&[f32]; 4], keep: &[bool]) {
     let w = keep.len();
-    let [ey_up, ey_down, ex, inv] = weights.map(|r| &r[..w]);
+    let weights = weights.map(|r| &r[..w]);
     if w <= LANES + 1 {
         // Narrow rows (coarse levels): cell by cell.
-        for (cur, [b, up, down]) in cur.into_iter().zip(rows) {
-            relax_narrow(cur, [b, up, down], [ey_up, ey_down, ex, inv], keep);
+        for (cur, rows) in cur.into_iter().zip(rows) {
+            relax_narrow(cur, rows, weights, keep);
         }
         return;
     }
+    let [ey_up, ey_down, ex, inv] = weights;
     let [x0, x1, x2] = cur;
     let mut planes = [(x0, rows[0]), (x1, rows[1]), (x2, rows[2])];
     let ends = planes
         .each_ref()
-        .map(|(cur, rows)| row_ends(cur, *rows, [ey_up, ey_down, ex, inv]));
+        .map(|(cur, rows)| row_ends(cur, *rows, weights));
     let mut s = 1;
     while s + LANES < w {
         let block = |v: &[f32], from: usize| -> [f32; LANES] {
@@ -663,7 +661,7 @@ fn relax_kernel(cur: [&mut [f32]; 3], rows: [[&[f32]; 3]; 3], weights: [&[f32]; 
         s += LANES;
     }
     for ((cur, rows), ends) in planes.iter_mut().zip(ends) {
-        relax_from(cur, *rows, [ey_up, ey_down, ex, inv], keep, s, ends);
+        relax_from(cur, *rows, weights, keep, s, ends);
     }
 }
 
