@@ -6,6 +6,9 @@ bf16 autocast, and the validation frames go through the inference pipeline after
     $GDRECON_PYTHON -m gdrecon_py.pack val   VAL.xz   ~/.cache/gdrecon/data/val
     python -m gdrecon_py.train_gradnet --train TRAIN.xz [TRAIN2.xz] --val VAL.xz --out RUN --device cuda \\
         --budget 420 --deadline 540 --export $OUT
+    python -m gdrecon_py.train_gradnet --train TRAIN.xz --out RUN2 --init onnx/gradnet.onnx \\
+        --epoch-offset 16 --lambda-cap 0.259 --g-warmup 1500 --schedule cosine --warmup-steps 300 --lr 1e-4 ...
+    (a continuation of the shipped network: docs/gradnet.md, "Continuing the training")
     (re-run the same command to resume from RUN/last.pt; `--export` writes the weights in parts
     of under 16 MiB; `merge_parts` turns them back into a checkpoint for `gdrecon_py.export`)
 
@@ -31,6 +34,13 @@ Differences from train.py, each named with why:
   * bf16 autocast for the two networks on CUDA (`--bf16`, default on CUDA), losses in fp32; a
     step whose loss is not finite is skipped and counted (never seen is the hope, logged either
     way).
+  * A continuation (`--init`, twenty-sixth session): the run starts from exported weights with a
+    fresh optimiser (what came back from the device machine holds no Adam moments), trains the
+    G-branch alone for `--g-warmup` steps (the export has none), keys lambda_F on
+    epoch + `--epoch-offset` (the release's ramp carried on) and may decay the rate per step on
+    a cosine (`--schedule cosine`, after `--warmup-steps`) instead of the release's step decay.
+    `--snapshot-every E` exports the weights every E epochs as well, for choosing on validation
+    elsewhere when the validation pack does not fit the call.
   * `--deadline` seconds after the start the run stops at the next step, saves, and exports:
     the device machine takes a command for at most 10 minutes.
 """
@@ -191,12 +201,40 @@ def build(args, device):
     if gbr is not None:
         gbr.to(device, memory_format=torch.channels_last)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr, betas=(0.9, 0.999))
-    sch = torch.optim.lr_scheduler.StepLR(opt, step_size=2, gamma=0.95)
+    if args.schedule == "cosine":
+        sch = torch.optim.lr_scheduler.LambdaLR(opt, cosine(args.warmup_steps, args.epochs * args.steps))
+    else:
+        sch = torch.optim.lr_scheduler.StepLR(opt, step_size=2, gamma=0.95)
     gopt = gsch = None
     if gbr is not None:
         gopt = torch.optim.Adam(gbr.parameters(), lr=args.lr, betas=(0.9, 0.999))
         gsch = torch.optim.lr_scheduler.StepLR(gopt, step_size=2, gamma=0.95)
     return net, gbr, opt, sch, gopt, gsch
+
+
+def cosine(warmup, total, floor=0.01):
+    """Per main step: linear warm-up over `warmup` steps, then a cosine from 1 to `floor` at
+    `total` (learning-rate factors, for LambdaLR)."""
+    total = max(total, 1)
+
+    def f(t):
+        ramp = min(1.0, (t + 1) / warmup) if warmup > 0 else 1.0
+        u = min(t, total) / total
+        return ramp * (floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * u)))
+    return f
+
+
+def init_state(path):
+    """Starting weights for a continuation: an exported graph (`.onnx`, through
+    `export.net_from_onnx`) or a `.pt` state dict (a checkpoint's 'net', or the dict itself;
+    float16 allowed, which halves what the device call carries), as float32."""
+    if path.endswith(".onnx"):
+        from .export import net_from_onnx
+        sd = net_from_onnx(path).state_dict()
+    else:
+        sd = torch.load(path, map_location="cpu", weights_only=False)
+        sd = sd.get("net", sd)
+    return {k: v.float() if v.is_floating_point() else v for k, v in sd.items()}
 
 
 class Stepper:
@@ -310,6 +348,16 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--log-every", type=int, default=10)
+    ap.add_argument("--init", default="", help="a continuation: start from these weights (.onnx or .pt)")
+    ap.add_argument("--epoch-offset", type=int, default=0,
+                    help="lambda_F as if this many epochs came before (the run --init continues)")
+    ap.add_argument("--lambda-cap", type=float, default=math.inf, help="hold lambda_F at most at this")
+    ap.add_argument("--g-warmup", type=int, default=0, help="G-branch steps before the first epoch")
+    ap.add_argument("--schedule", choices=["step", "cosine"], default="step",
+                    help="step: lr x0.95 every 2 epochs (the release's); cosine: per main step, to 1 %%")
+    ap.add_argument("--warmup-steps", type=int, default=0, help="linear lr warm-up (cosine schedule)")
+    ap.add_argument("--snapshot-every", type=int, default=0,
+                    help="with --export, also export the weights after every this many epochs (snapE-*.pt)")
     ap.add_argument("--export", default="", help="folder for best-*.pt / last-*.pt parts and the log")
     args = ap.parse_args(argv)
     device = torch.device(args.device)
@@ -362,6 +410,21 @@ def main(argv=None):
         print(f"resumed from {last} at epoch {start_epoch}", flush=True)
     st = Stepper(args, device, net, gbr, opt, gopt)
     log = open(os.path.join(args.out, "log.jsonl"), "a")
+    if not resume and args.init:
+        net.load_state_dict(init_state(args.init))
+        print(f"started from {args.init}", flush=True)
+    if not resume and gbr is not None and args.g_warmup > 0:
+        # The exported graph holds the network alone: a continuation's G-branch starts afresh
+        # and must predict something before L_1st may lean on it.
+        tg, gsum = time.time(), 0.0
+        for _ in range(args.g_warmup):
+            v = st.g(crops.sample(args.batch, args.patch, args.exposure, args.dihedral))
+            gsum += v if v is not None else 0.0
+        sync(device)
+        rec = {"kind": "g_warmup", "g_steps": args.g_warmup, "lprime": gsum / args.g_warmup,
+               "seconds": time.time() - tg}
+        log.write(json.dumps(rec) + "\n")
+        print(json.dumps(rec), flush=True)
 
     def past_deadline():
         return args.deadline > 0 and time.time() - t_start > args.deadline
@@ -370,21 +433,24 @@ def main(argv=None):
     epoch = start_epoch - 1
     for epoch in range(start_epoch, args.epochs):
         t0 = time.time()
-        lam = lambda_f(epoch) if gbr is not None else 0.0
+        lam = min(lambda_f(epoch + args.epoch_offset), args.lambda_cap) if gbr is not None else 0.0
         sums, n_main = {"grad": 0.0, "data": 0.0, "first": 0.0, "total": 0.0}, 0
         for step in range(args.steps):
             if past_deadline():
                 stopped = True
                 break
+            lr = opt.param_groups[0]["lr"]
             rec = st.main(crops.sample(args.batch, args.patch, args.exposure, args.dihedral), lam)
             if rec is None:
                 continue
             n_main += 1
+            if args.schedule == "cosine":
+                sch.step()
             for k in sums:
                 sums[k] += rec[k]
             if step % args.log_every == 0:
                 log.write(json.dumps({"epoch": epoch, "step": step, "kind": "main", "lambda": lam,
-                                      "lr": opt.param_groups[0]["lr"], **rec}) + "\n")
+                                      "lr": lr, **rec}) + "\n")
         gsum, n_g = 0.0, 0
         if gbr is not None and not stopped:
             for step in range(g_steps):
@@ -396,7 +462,8 @@ def main(argv=None):
                     gsum += v
                     n_g += 1
             gsch.step()
-        sch.step()
+        if args.schedule == "step":
+            sch.step()
         sync(device)
         dt = time.time() - t0
         elapsed += dt
@@ -426,6 +493,11 @@ def main(argv=None):
             ck.update(gbr=gbr.state_dict(), gopt=gopt.state_dict(), gsch=gsch.state_dict())
         torch.save(ck, last + ".tmp")
         os.replace(last + ".tmp", last)
+        if args.export and args.snapshot_every > 0 and (epoch + 1) % args.snapshot_every == 0 \
+                and epoch + 1 < args.epochs and not stopped:
+            os.makedirs(args.export, exist_ok=True)
+            save_parts({"net": net.state_dict(), "epoch": epoch, "elapsed": elapsed, "variant": args.variant},
+                       os.path.join(args.export, f"snap{epoch}"))
         if stopped:
             break
     log.close()

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from gdrecon_py import gradnet as gn
 from gdrecon_py import pack
 from gdrecon_py import train_gradnet as tg
 
@@ -110,3 +111,49 @@ def test_short_run_trains_validates_and_resumes(tmp_path):
     assert sum(r["kind"] == "val" for r in rows) == 3
     ck = tg.merge_parts(str(tmp_path / "exp" / "last"))
     assert ck["epoch"] == 2 and os.path.exists(tmp_path / "exp" / "log.jsonl")
+
+
+def test_continuation_starts_from_the_given_weights(tmp_path):
+    """`--init` (fp16 .pt) with a cosine schedule, a G warm-up and a snapshot: the first logged
+    step runs on the given weights (warm-up lr below the peak), the rate ends at the floor, and
+    the snapshot and the last export both come back."""
+    rng = np.random.default_rng(3)
+    H = W = 32
+    tr = []
+    for i in range(2):
+        t = torch.from_numpy(rng.random((1, 3, H, W)).astype(np.float32))
+        tr.append(pack.round_half(planes_of(t, torch.rand(1, 7, H, W)).numpy()[0]))
+    pack.write(str(tmp_path / "t.xz"), {f"{W}x{H}": np.stack(tr)}, {"kind": "train"})
+    torch.manual_seed(5)
+    start = gn.GradNet()
+    torch.save({k: v.half() for k, v in start.state_dict().items()}, tmp_path / "init.pt")
+    args = ["--train", str(tmp_path / "t.xz"), "--out", str(tmp_path / "run"), "--device", "cpu",
+            "--steps", "2", "--batch", "2", "--patch", "16", "--threads", "1", "--epochs", "3",
+            "--init", str(tmp_path / "init.pt"), "--epoch-offset", "16", "--g-warmup", "2",
+            "--schedule", "cosine", "--warmup-steps", "2", "--lr", "1e-3", "--log-every", "1",
+            "--snapshot-every", "2", "--export", str(tmp_path / "exp")]
+    got = tg.init_state(str(tmp_path / "init.pt"))
+    for k, v in start.state_dict().items():
+        assert got[k].dtype == torch.float32 and torch.equal(got[k], v.half().float()), k
+    tg.main(args)
+    rows = [json.loads(line) for line in open(tmp_path / "run" / "log.jsonl")]
+    assert rows[0]["kind"] == "g_warmup" and np.isfinite(rows[0]["lprime"])
+    mains = [r for r in rows if r["kind"] == "main"]
+    assert len(mains) == 6
+    f = tg.cosine(2, 6)
+    assert [r["lr"] for r in mains] == pytest.approx([1e-3 * f(t) for t in range(6)])
+    assert mains[0]["lr"] == pytest.approx(0.5e-3) and f(6) == pytest.approx(0.01)
+    assert all(r["lambda"] == pytest.approx(tg.lambda_f(16 + r["epoch"])) for r in mains)
+    snap = tg.merge_parts(str(tmp_path / "exp" / "snap1"))
+    last = tg.merge_parts(str(tmp_path / "exp" / "last"))
+    assert snap["epoch"] == 1 and last["epoch"] == 2
+    assert not os.path.exists(tmp_path / "exp" / "snap2-0.pt")
+    moved = [k for k, v in last["net"].items() if not torch.equal(v, start.state_dict()[k].half().float())]
+    assert moved
+    # At a rate of 0 the run must hand back exactly the weights it was given.
+    still = args[:args.index("--out") + 1] + [str(tmp_path / "run0")] + args[args.index("--out") + 2:]
+    still[still.index("--lr") + 1] = "0"
+    still[still.index("--export") + 1] = str(tmp_path / "exp0")
+    tg.main(still)
+    back = tg.merge_parts(str(tmp_path / "exp0" / "last"))["net"]
+    assert all(torch.equal(v, got[k]) for k, v in back.items())
