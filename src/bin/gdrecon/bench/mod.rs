@@ -56,7 +56,8 @@ pub struct BenchArgs {
     #[arg(long = "param", short = 'p', value_name = "NAME=VALUE")]
     params: Vec<String>,
     /// Also time every frame resized by these factors, e.g. 0.5,1,2 (nearest-neighbour; 1 is
-    /// the frame as read). relMSE is reported at factor 1 only.
+    /// the frame as read; the synthetic frame is rendered anew at each size). relMSE is
+    /// reported at factor 1 only.
     #[arg(long)]
     scales: Option<String>,
     /// Timed runs per variant and frame (the median is reported).
