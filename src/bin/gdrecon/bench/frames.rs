@@ -116,12 +116,12 @@ pub fn parse_scales(list: &str) -> gdrecon::Result<Vec<f64>> {
 /// solvers behave differently (at 2560 x 1440 the prior path's Jacobi-preconditioned CG took
 /// 3.5x as long on the resampled frame as on the one rendered at that size).
 ///
-/// Every layer of any other frame is resampled nearest-neighbour. The gradients are not resampled but re-derived
-/// from the source gradients: `dx` at an output pixel is the sum of the source `dx` between
-/// the source columns its pixel and its right neighbour sample (0, 1 or more terms), likewise
-/// `dy` over rows. So the gradients stay the forward differences of the resampled image the
-/// renderer's gradients describe, noise included, and the last column of `dx` and the last row
-/// of `dy` are 0 as the frame convention says.
+/// Every layer of any other frame is resampled nearest-neighbour. The gradients are not
+/// resampled but re-derived from the source gradients: `dx` at an output pixel is the sum of
+/// the source `dx` between the source columns its pixel and its right neighbour sample (0, 1
+/// or more terms), likewise `dy` over rows. So the gradients stay the forward differences of
+/// the resampled image the renderer's gradients describe, noise included, and the last column
+/// of `dx` and the last row of `dy` are 0 as the frame convention says.
 pub fn resized(source: &BenchFrame, scale: f64) -> gdrecon::Result<BenchFrame> {
     let frame = &source.frame;
     let (w, h) = scaled_size(frame.size(), scale)?;
