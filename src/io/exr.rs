@@ -6,7 +6,7 @@
 //! components matched case-insensitively; layer aliases seen in the wild accepted
 //! ([`LAYER_ALIASES`]); unknown channels ignored and listed. The data window is the image: a
 //! window offset from the display window is read as is, and parts whose windows disagree are
-//! an error. Blocks are decoded and encoded by [`super::blocks`]: in parallel inside a rayon pool
+//! an error. Blocks are decoded and encoded by `super::blocks`: in parallel inside a rayon pool
 //! (the CLI reads and writes inside its [`crate::Context::install`]), on the calling thread
 //! otherwise, since callers own the threads.
 

@@ -40,7 +40,7 @@ use crate::image::Image;
 use crate::progress::Progress;
 use crate::report::Report;
 
-/// Settings of [`Auto`]: the configurations it chooses between.
+/// Settings of `Auto`: the configurations it chooses between.
 #[derive(Clone, Debug, PartialEq)]
 #[non_exhaustive]
 pub struct AutoConfig {

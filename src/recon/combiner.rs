@@ -13,7 +13,7 @@
 //! references) is shipped as its head alone (`onnx/combiner.onnx`: 21 feature planes in, one
 //! logit per candidate out). This module computes the features natively from the 27 planes
 //! the model reads (the candidates, the base image, the variance, albedo, normal and the two
-//! gradients; scale-free transforms, see [`features`]) as if the frame were padded to a
+//! gradients; scale-free transforms, see `features`) as if the frame were padded to a
 //! multiple of 4 by repeating its last row and column, runs the graph in overlapping tiles
 //! when the frame is large, and mixes the candidates by the softmax of the logits over each
 //! tile's core. In the graph, those transforms and the softmax were 35 % of its time at

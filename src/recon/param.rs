@@ -1,6 +1,6 @@
 //! Method parameters, declared once.
 //!
-//! Each method's configuration type lists its parameters in one table ([`Params::TABLE`]):
+//! Each method's configuration type lists its parameters in one table (`Params::TABLE`):
 //! name, type, accepted range, one line of documentation, and how to read and write the field.
 //! Everything else reads that table: [`MethodConfig::set`](super::MethodConfig::set) and
 //! [`get`](super::MethodConfig::get) in Rust, `--param NAME=VALUE` on the command line, the

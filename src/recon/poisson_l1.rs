@@ -77,7 +77,7 @@ pub struct PoissonL1Config {
     /// A step's CG also stops once an iteration moves the image by less than this fraction
     /// of how far the previous step moved it (both measured like `cg_change`); 0 never.
     pub cg_relative: f32,
-    /// Precondition CG (with [`Self::preconditioner`]).
+    /// Precondition CG (with `preconditioner`).
     pub preconditioned: bool,
     /// Which preconditioner CG uses when `preconditioned`.
     pub preconditioner: Preconditioner,

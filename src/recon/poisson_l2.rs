@@ -2,7 +2,7 @@
 //! `||D_x I - dx||^2 + ||D_y I - dy||^2 + alpha^2 ||I - I_b||^2`, per channel.
 //!
 //! The normal equations `(alpha^2 + D^T D) I = alpha^2 I_b + D^T g` are solved exactly by the
-//! DCT (see [`super::dct`]): two 2-D transforms and a division, O(n log n). Gradient-domain path
+//! DCT (see `super::dct`): two 2-D transforms and a division, O(n log n). Gradient-domain path
 //! tracing's reference solver runs 50 unpreconditioned CG steps instead, which stops short of
 //! this minimiser; we solve it exactly.
 

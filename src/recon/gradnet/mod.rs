@@ -1,14 +1,14 @@
 //! GradNet (Guo et al. 2019): the unsupervised multi-branch auto-encoder, run through ONNX
 //! Runtime, with every transform around the network done natively.
 //!
-//! Per frame: feature normalisation and μ-law compression ([`prep`]), padding to a multiple of
+//! Per frame: feature normalisation and μ-law compression (`prep`), padding to a multiple of
 //! 8 by index maps, the network per colour channel (R, G, B each a batch of one: the same
-//! speed as a batch of three here, a third of the memory) in overlapping tiles ([`tiles`]),
-//! the inverse μ-law, then the Gaussian bias correction over the whole frame ([`bias`]).
+//! speed as a batch of three here, a third of the memory) in overlapping tiles (`tiles`),
+//! the inverse μ-law, then the Gaussian bias correction over the whole frame (`bias`).
 //! `onnx/gdrecon_py/pipeline.py` is the reference this module is tested against.
 //!
 //! Only this module (and only with the `gradnet` cargo feature) knows about ONNX Runtime. The
-//! runtime is found and loaded by the first GradNet plan ([`runtime`]); sessions are kept in
+//! runtime is found and loaded by the first GradNet plan (`runtime`); sessions are kept in
 //! the [`Context`] and shared by every plan made from it, so frames of several sizes reuse
 //! one loaded model.
 

@@ -3,7 +3,7 @@
 //!
 //! A frame's `prior` layer, when the caller gives one, is used as is: a renderer that already
 //! ran its denoiser pays nothing more. Otherwise the plan computes it with Intel Open Image
-//! Denoise ([`oidn`], opened at run time) from the base image as rendered, with the albedo and
+//! Denoise (`oidn`, opened at run time) from the base image as rendered, with the albedo and
 //! normal when the frame has them: RT filter, HDR, quality high, auxiliary images not marked
 //! clean (OIDN prefilters them), the settings of `python -m gdrecon_py.oidn`, whose output
 //! `gdrecon bench --baselines` shows as "oidn". The denoiser must see the base image itself:
