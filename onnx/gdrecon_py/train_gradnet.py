@@ -413,21 +413,33 @@ def main(argv=None):
     if not resume and args.init:
         net.load_state_dict(init_state(args.init))
         print(f"started from {args.init}", flush=True)
-    if not resume and gbr is not None and args.g_warmup > 0:
-        # The exported graph holds the network alone: a continuation's G-branch starts afresh
-        # and must predict something before L_1st may lean on it.
-        tg, gsum = time.time(), 0.0
-        for _ in range(args.g_warmup):
-            v = st.g(crops.sample(args.batch, args.patch, args.exposure, args.dihedral))
-            gsum += v if v is not None else 0.0
-        sync(device)
-        rec = {"kind": "g_warmup", "g_steps": args.g_warmup, "lprime": gsum / args.g_warmup,
-               "seconds": time.time() - tg}
-        log.write(json.dumps(rec) + "\n")
-        print(json.dumps(rec), flush=True)
 
     def past_deadline():
         return args.deadline > 0 and time.time() - t_start > args.deadline
+
+    def g_run(n):
+        """Up to `n` G-branch steps (fewer past the deadline): (sum of L', steps counted,
+        stopped)."""
+        gsum, n_g = 0.0, 0
+        for _ in range(n):
+            if past_deadline():
+                return gsum, n_g, True
+            v = st.g(crops.sample(args.batch, args.patch, args.exposure, args.dihedral))
+            if v is not None:
+                gsum += v
+                n_g += 1
+        return gsum, n_g, False
+
+    if not resume and gbr is not None and args.g_warmup > 0:
+        # The exported graph holds the network alone: a continuation's G-branch starts afresh
+        # and must predict something before L_1st may lean on it.
+        tg = time.time()
+        gsum, n_g, _ = g_run(args.g_warmup)
+        sync(device)
+        rec = {"kind": "g_warmup", "g_steps": n_g, "lprime": gsum / max(n_g, 1),
+               "seconds": time.time() - tg}
+        log.write(json.dumps(rec) + "\n")
+        print(json.dumps(rec), flush=True)
 
     stopped = False
     epoch = start_epoch - 1
@@ -453,14 +465,7 @@ def main(argv=None):
                                       "lr": lr, **rec}) + "\n")
         gsum, n_g = 0.0, 0
         if gbr is not None and not stopped:
-            for step in range(g_steps):
-                if past_deadline():
-                    stopped = True
-                    break
-                v = st.g(crops.sample(args.batch, args.patch, args.exposure, args.dihedral))
-                if v is not None:
-                    gsum += v
-                    n_g += 1
+            gsum, n_g, stopped = g_run(g_steps)
             gsch.step()
         if args.schedule == "step":
             sch.step()

@@ -193,8 +193,8 @@ fn scaling_table(out: &mut String, rows: &[Row]) {
         "## Resolution scaling\n\nFrames resized nearest-neighbour (gradients re-derived from \
          the source gradients, noise kept; the synthetic frame is rendered anew at each size); \
          cells: median seconds (nanoseconds per pixel), and with `--against-oidn` the time as \
-         a multiple of OIDN's runs interleaved with it (OIDN itself is the variant `prior`). `k` fits seconds ~ pixels^k over the scales \
-         timed; `scaling.png` plots the same.\n"
+         a multiple of OIDN's runs interleaved with it (OIDN itself is the variant `prior`). \
+         `k` fits seconds ~ pixels^k over the scales timed; `scaling.png` plots the same.\n"
     );
     let head: Vec<String> = scales.iter().map(|s| format!("{s}x")).collect();
     let _ = writeln!(
