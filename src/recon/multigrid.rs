@@ -30,7 +30,7 @@
 
 use rayon::prelude::*;
 
-use super::ops::Dims;
+use super::ops::{row_sum, Dims};
 use crate::error::Result;
 use crate::image::try_vec;
 
@@ -384,11 +384,8 @@ impl Level {
                             let o = (lo + r) * w;
                             for (c, rows) in planes.iter().enumerate() {
                                 let b = &b[c * n + o..c * n + o + w];
-                                dots[(lo + r - top) * 3 + c] = b
-                                    .iter()
-                                    .zip(rows[r].iter())
-                                    .map(|(&b, &x)| f64::from(b) * f64::from(x))
-                                    .sum();
+                                dots[(lo + r - top) * 3 + c] =
+                                    row_sum(b, rows[r], |b, x| f64::from(b) * f64::from(x));
                             }
                         }
                     }

@@ -115,39 +115,18 @@ pub(crate) fn apply_weighted(
         .enumerate()
         .map(|(y, ((r0, r1), r2))| {
             let o = y * w;
-            let wd = &wt.data[o..o + w];
-            let wx = &wt.x[o..o + w];
+            let row_weights = RowWeights {
+                data: &wt.data[o..o + w],
+                x: &wt.x[o..o + w],
+                y: &wt.y[o..o + w],
+            };
             let mut dots = [0.0; 3];
             for (plane, row) in [r0, r1, r2].into_iter().enumerate() {
                 let u = &u[plane * n..(plane + 1) * n];
                 let ur = &u[o..o + w];
-                for ((v, &c), &k) in row.iter_mut().zip(ur).zip(wd) {
-                    *v = alpha2 * k * c;
-                }
-                // Horizontal edges (x, x+1), x < w - 1, each with flux wx[x] (u[x+1] - u[x]).
-                if w >= 2 {
-                    row[0] -= wx[0] * (ur[1] - ur[0]);
-                    row[w - 1] += wx[w - 2] * (ur[w - 1] - ur[w - 2]);
-                    for ((v, u3), k2) in row[1..w - 1]
-                        .iter_mut()
-                        .zip(ur.windows(3))
-                        .zip(wx.windows(2))
-                    {
-                        *v += k2[0] * (u3[1] - u3[0]) - k2[1] * (u3[2] - u3[1]);
-                    }
-                }
-                if y >= 1 {
-                    let (up, wy) = (&u[o - w..o], &wt.y[o - w..o]);
-                    for (((v, &c), &a), &k) in row.iter_mut().zip(ur).zip(up).zip(wy) {
-                        *v += k * (c - a);
-                    }
-                }
-                if y + 1 < h {
-                    let (dn, wy) = (&u[o + w..o + 2 * w], &wt.y[o..o + w]);
-                    for (((v, &c), &b), &k) in row.iter_mut().zip(ur).zip(dn).zip(wy) {
-                        *v -= k * (b - c);
-                    }
-                }
+                let up = (y >= 1).then(|| (&u[o - w..o], &wt.y[o - w..o]));
+                let down = (y + 1 < h).then(|| &u[o + w..o + 2 * w]);
+                weighted_row(row, alpha2, &row_weights, ur, up, down);
                 dots[plane] = finish(plane, y, row, ur);
             }
             dots
@@ -157,8 +136,78 @@ pub(crate) fn apply_weighted(
     std::array::from_fn(|c| partials.iter().map(|p| p[c]).sum())
 }
 
-/// Sums of `f(a_i, b_i)` per plane of `plane_len` values, in f64, in a fixed order.
-/// `partials` is scratch reused between calls.
+/// One row of [`apply_weighted`]: `row = (A u)` at the row `ur`, `wt` holding that row's
+/// weights, `up` the row above with the vertical weights between the two (`None` on the first
+/// row), `down` the row below (`None` on the last, whose `wt.y` are 0).
+#[inline]
+pub(crate) fn weighted_row(
+    row: &mut [f32],
+    alpha2: f32,
+    wt: &RowWeights,
+    ur: &[f32],
+    up: Option<(&[f32], &[f32])>,
+    down: Option<&[f32]>,
+) {
+    let w = row.len();
+    let (wd, wx, wy) = (wt.data, wt.x, wt.y);
+    for ((v, &c), &k) in row.iter_mut().zip(ur).zip(wd) {
+        *v = alpha2 * k * c;
+    }
+    // Horizontal edges (x, x+1), x < w - 1, each with flux wx[x] (u[x+1] - u[x]).
+    if w >= 2 {
+        row[0] -= wx[0] * (ur[1] - ur[0]);
+        row[w - 1] += wx[w - 2] * (ur[w - 1] - ur[w - 2]);
+        for ((v, u3), k2) in row[1..w - 1]
+            .iter_mut()
+            .zip(ur.windows(3))
+            .zip(wx.windows(2))
+        {
+            *v += k2[0] * (u3[1] - u3[0]) - k2[1] * (u3[2] - u3[1]);
+        }
+    }
+    if let Some((up, wy_up)) = up {
+        for (((v, &c), &a), &k) in row.iter_mut().zip(ur).zip(up).zip(wy_up) {
+            *v += k * (c - a);
+        }
+    }
+    if let Some(dn) = down {
+        for (((v, &c), &b), &k) in row.iter_mut().zip(ur).zip(dn).zip(wy) {
+            *v -= k * (b - c);
+        }
+    }
+}
+
+/// Interleaved partial sums of [`row_sum`].
+pub(crate) const SUM_LANES: usize = 16;
+
+/// `sum of f(a_i, b_i)` over a row, in [`SUM_LANES`] interleaved partial sums then added in
+/// order. A single running sum is a chain of dependent additions (4 cycles each) that the
+/// compiler may not reorder, and it was what bounded the CG loop's passes over memory;
+/// interleaved, the sums vectorise. The order is fixed, so any thread count gives the same
+/// bits.
+#[inline(always)]
+pub(crate) fn row_sum<T>(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> T) -> T
+where
+    T: Copy + Default + std::ops::AddAssign + std::iter::Sum,
+{
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut acc = [T::default(); SUM_LANES];
+    let (ca, cb) = (a.chunks_exact(SUM_LANES), b.chunks_exact(SUM_LANES));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (ca, cb) in ca.zip(cb) {
+        for k in 0..SUM_LANES {
+            acc[k] += f(ca[k], cb[k]);
+        }
+    }
+    for (k, (&a, &b)) in ra.iter().zip(rb).enumerate() {
+        acc[k] += f(a, b);
+    }
+    acc.into_iter().sum()
+}
+
+/// Sums of `f(a_i, b_i)` per plane of `plane_len` values, in f64, in a fixed order (each
+/// row's by [`row_sum`]). `partials` is scratch reused between calls.
 pub(crate) fn plane_sums(
     a: &[f32],
     b: &[f32],
@@ -169,7 +218,7 @@ pub(crate) fn plane_sums(
 ) -> Vec<f64> {
     a.par_chunks(row)
         .zip(b.par_chunks(row))
-        .map(|(ra, rb)| ra.iter().zip(rb).map(|(&x, &y)| f(x, y)).sum::<f64>())
+        .map(|(ra, rb)| row_sum(ra, rb, &f))
         .collect_into_vec(partials);
     let rows_per_plane = plane_len / row;
     partials

@@ -5,7 +5,8 @@
 //! row, by iteratively reweighted least squares (IRLS), as the reference solver does:
 //! - step 0 uses unit weights (the L2 problem); step `k >= 1` sets, per residual row,
 //!   `w = 1 / (||e_row|| + reg_k)` with `reg_k = 0.05 * 0.5^(k-1)`, one weight shared by
-//!   R, G, B, then rescales all weights so that they average 1 over all rows;
+//!   R, G, B, then rescales all weights so that they average 1 over all rows (we do not:
+//!   the solution does not depend on a common scale of the weights; see `reweight`);
 //! - each weighted system `(alpha^2 W_d + D_x^T W_x D_x + D_y^T W_y D_y) I = alpha^2 W_d I_b +
 //!   D_x^T W_x dx + D_y^T W_y dy` is solved by conjugate gradients warm-started from the
 //!   previous step (from `I_b` at step 0).
@@ -43,7 +44,7 @@ use rayon::prelude::*;
 use super::band::{self, banded, NOISE_BAND};
 use super::dct::DctPoisson;
 use super::multigrid::{multigrid_bytes, Multigrid};
-use super::ops::{apply_weighted, plane_sums, Dims, RowWeights};
+use super::ops::{apply_weighted, plane_sums, row_sum, weighted_row, Dims, RowWeights};
 use super::param::{choices, Param, Params, Preset, Range};
 use super::poisson_l2::{ALPHA_RANGE, DEFAULT_ALPHA};
 use super::prior::{prior_memory, DataTerm, OnPrior, DATA_DOC, PRIOR_ALPHA_DOC};
@@ -594,66 +595,92 @@ impl PoissonL1 {
         self.wy[(h - 1) * w..].fill(0.0);
     }
 
-    /// IRLS weights `1 / (||e_row|| + reg)` from the residuals of the current `x`,
-    /// normalised to mean 1.
-    fn reweight(&mut self, frame: &Frame, reg: f32) {
+    /// Sets up IRLS step `k >= 1` from the current `x` in one pass over memory: the weights
+    /// `1 / (||e_row|| + reg)` of every residual row, the right-hand side `b` of the weighted
+    /// system (not stored), and the residual `r = b - A x` CG starts from. Returns `b . b` and
+    /// `r . r` per channel.
+    ///
+    /// The reference solver also rescales the weights to average 1. The weighted least-squares
+    /// solution does not depend on a common scale of the weights, and neither does any step
+    /// of CG or of its preconditioners (every quantity scales with them, exactly so in floating
+    /// point for a power of two); leaving the rescaling out is rescaling by 1, and saves the
+    /// pass that would need all the weights before the system could be formed.
+    fn reweight(&mut self, frame: &Frame, reg: f32) -> ([f64; 3], [f64; 3]) {
         let Dims { w, h } = self.dims;
         let n = w * h;
-        let alpha = self.cfg.alpha;
-        let (x, ib) = (&self.x, frame.color().as_slice());
-        let (gx, gy) = (frame.dx().as_slice(), frame.dy().as_slice());
-        // Row `y` of each channel of a planar buffer.
-        let rows3 = |y: usize| -> [std::ops::Range<usize>; 3] {
-            std::array::from_fn(|c| c * n + y * w..c * n + (y + 1) * w)
+        let (alpha, alpha2) = (self.cfg.alpha, self.cfg.alpha * self.cfg.alpha);
+        let planes = Planes {
+            x: &self.x,
+            colour: frame.color().as_slice(),
+            dx: frame.dx().as_slice(),
+            dy: frame.dy().as_slice(),
+            n,
+            w,
         };
-        self.wd
-            .par_chunks_mut(w)
-            .zip(self.wx.par_chunks_mut(w))
-            .zip(self.wy.par_chunks_mut(w))
-            .enumerate()
-            .map(|(y, ((wd, wx), wy))| {
-                let r = rows3(y);
-                let (x0, x1, x2) = (&x[r[0].clone()], &x[r[1].clone()], &x[r[2].clone()]);
-                let (b0, b1, b2) = (&ib[r[0].clone()], &ib[r[1].clone()], &ib[r[2].clone()]);
-                // Data rows: ||alpha (x - I_b)||.
-                for i in 0..w {
-                    let (e0, e1, e2) = (x0[i] - b0[i], x1[i] - b1[i], x2[i] - b2[i]);
-                    wd[i] = 1.0 / (alpha * (e0 * e0 + e1 * e1 + e2 * e2).sqrt() + reg);
-                }
-                // Horizontal rows: ||x(p + 1) - x(p) - dx(p)||, p in the first w - 1 columns.
-                let (g0, g1, g2) = (&gx[r[0].clone()], &gx[r[1].clone()], &gx[r[2].clone()]);
-                for i in 0..w - 1 {
-                    let e0 = x0[i + 1] - x0[i] - g0[i];
-                    let e1 = x1[i + 1] - x1[i] - g1[i];
-                    let e2 = x2[i + 1] - x2[i] - g2[i];
-                    wx[i] = 1.0 / ((e0 * e0 + e1 * e1 + e2 * e2).sqrt() + reg);
-                }
-                wx[w - 1] = 0.0;
-                // Vertical rows: ||x(p + w) - x(p) - dy(p)||, p in the first h - 1 rows.
-                if y + 1 < h {
-                    let d = rows3(y + 1);
-                    let (n0, n1, n2) = (&x[d[0].clone()], &x[d[1].clone()], &x[d[2].clone()]);
-                    let (g0, g1, g2) = (&gy[r[0].clone()], &gy[r[1].clone()], &gy[r[2].clone()]);
-                    for i in 0..w {
-                        let e0 = n0[i] - x0[i] - g0[i];
-                        let e1 = n1[i] - x1[i] - g1[i];
-                        let e2 = n2[i] - x2[i] - g2[i];
-                        wy[i] = 1.0 / ((e0 * e0 + e1 * e1 + e2 * e2).sqrt() + reg);
+        let (r0, rest) = self.r.split_at_mut(n);
+        let (r1, r2) = rest.split_at_mut(n);
+        let len = REWEIGHT_BAND * w;
+        let band = |(up, b): &mut (Vec<f32>, Vec<f32>),
+                    (k, (((wd, wx), wy), ((r0, r1), r2))): ReweightBand<'_>| {
+            let top = k * REWEIGHT_BAND;
+            if top > 0 {
+                // The vertical weights above the band, which its first row's system needs.
+                planes.vertical_weights(top - 1, h, reg, up);
+            }
+            let mut sums = [0.0f64; 6];
+            let mut r = [r0, r1, r2];
+            for j in 0..wd.len() / w {
+                let (y, o) = (top + j, j * w);
+                planes.data_weights(y, alpha, reg, &mut wd[o..o + w]);
+                planes.horizontal_weights(y, reg, &mut wx[o..o + w]);
+                let (done, wy) = wy.split_at_mut(o);
+                planes.vertical_weights(y, h, reg, &mut wy[..w]);
+                let wy_up: Option<&[f32]> = match (y, j) {
+                    (0, _) => None,
+                    (_, 0) => Some(up),
+                    _ => Some(&done[o - w..]),
+                };
+                let row_weights = RowWeights {
+                    data: &wd[o..o + w],
+                    x: &wx[o..o + w],
+                    y: &wy[..w],
+                };
+                for (c, r) in r.iter_mut().enumerate() {
+                    let r = &mut r[o..o + w];
+                    b.resize(w, 0.0);
+                    planes.rhs_row(c, y, alpha2, &row_weights, wy_up, b);
+                    let x = |y: usize| planes.row(planes.x, c, y);
+                    let above = wy_up.map(|wy_up| (x(y - 1), wy_up));
+                    let below = (y + 1 < h).then(|| x(y + 1));
+                    weighted_row(r, alpha2, &row_weights, x(y), above, below);
+                    for (r, &b) in r.iter_mut().zip(b.iter()) {
+                        *r = b - *r;
                     }
-                } else {
-                    wy.fill(0.0);
+                    sums[c] += f64::from(row_sum(b, b, |b, _| b * b));
+                    sums[3 + c] += f64::from(row_sum(r, r, |r, _| r * r));
                 }
-                let sum = |v: &[f32]| v.iter().map(|&a| f64::from(a)).sum::<f64>();
-                sum(wd) + sum(wx) + sum(wy)
-            })
-            .collect_into_vec(&mut self.partials);
-        let rows = n + h * (w - 1) + (h - 1) * w;
-        let mean = self.partials.iter().sum::<f64>() / rows as f64;
-        let s = (1.0 / mean) as f32;
-        for v in [&mut self.wd, &mut self.wx, &mut self.wy] {
-            v.par_chunks_mut(w)
-                .for_each(|row| row.iter_mut().for_each(|w| *w *= s));
-        }
+            }
+            sums
+        };
+        let sums: Vec<[f64; 6]> = self
+            .wd
+            .par_chunks_mut(len)
+            .zip(self.wx.par_chunks_mut(len))
+            .zip(self.wy.par_chunks_mut(len))
+            .zip(
+                r0.par_chunks_mut(len)
+                    .zip(r1.par_chunks_mut(len))
+                    .zip(r2.par_chunks_mut(len)),
+            )
+            .enumerate()
+            .map_init(|| (vec![0.0; w], Vec::new()), band)
+            .collect();
+        // Bands in order: the same sums for any number of threads.
+        let total = |i: usize| sums.iter().map(|s| s[i]).sum::<f64>();
+        (
+            std::array::from_fn(total),
+            std::array::from_fn(|c| total(3 + c)),
+        )
     }
 
     /// The regularisation of IRLS step `step >= 1`: 0.05 halved at every step, at least the
@@ -667,33 +694,29 @@ impl PoissonL1 {
     fn weighted_rhs(&mut self, frame: &Frame) -> [f64; 3] {
         let Dims { w, h } = self.dims;
         let alpha2 = self.cfg.alpha * self.cfg.alpha;
-        let (ib, gx, gy) = (
-            frame.color().as_slice(),
-            frame.dx().as_slice(),
-            frame.dy().as_slice(),
-        );
+        let planes = Planes {
+            x: &self.x,
+            colour: frame.color().as_slice(),
+            dx: frame.dx().as_slice(),
+            dy: frame.dy().as_slice(),
+            n: w * h,
+            w,
+        };
         let (wd, wx, wy) = (&self.wd, &self.wx, &self.wy);
         self.b
             .par_chunks_mut(w)
             .enumerate()
             .map(|(r, row)| {
-                let (y, o) = (r % h, r * w);
+                let (c, y) = (r / h, r % h);
                 let k = y * w; // offset in the (shared) weight planes
-                let (wdr, wxr, wyr) = (&wd[k..k + w], &wx[k..k + w], &wy[k..k + w]);
-                let (ibr, gxr, gyr) = (&ib[o..o + w], &gx[o..o + w], &gy[o..o + w]);
-                for i in 0..w {
-                    row[i] = alpha2 * wdr[i] * ibr[i] - wxr[i] * gxr[i] - wyr[i] * gyr[i];
-                }
-                for i in 1..w {
-                    row[i] += wxr[i - 1] * gxr[i - 1];
-                }
-                if y >= 1 {
-                    let (wyu, gyu) = (&wy[k - w..k], &gy[o - w..o]);
-                    for i in 0..w {
-                        row[i] += wyu[i] * gyu[i];
-                    }
-                }
-                f64::from(row.iter().map(|v| v * v).sum::<f32>())
+                let row_weights = RowWeights {
+                    data: &wd[k..k + w],
+                    x: &wx[k..k + w],
+                    y: &wy[k..k + w],
+                };
+                let wy_up = (y >= 1).then(|| &wy[k - w..k]);
+                planes.rhs_row(c, y, alpha2, &row_weights, wy_up, row);
+                f64::from(row_sum(row, row, |v, _| v * v))
             })
             .collect_into_vec(&mut self.partials);
         per_channel(&self.partials)
@@ -714,7 +737,7 @@ impl PoissonL1 {
             self.dims,
             dst,
             &mut self.row_dots,
-            |_, _, row, u| f64::from(row.iter().zip(u).map(|(&a, &b)| a * b).sum::<f32>()),
+            |_, _, row, u| f64::from(row_sum(row, u, |a, b| a * b)),
         )
     }
 
@@ -730,12 +753,10 @@ impl PoissonL1 {
         let b = &self.b;
         let finish = |plane: usize, y: usize, row: &mut [f32], _: &[f32]| {
             let o = plane * w * h + y * w;
-            let mut rr = 0.0f32;
             for (r, &b) in row.iter_mut().zip(&b[o..o + w]) {
                 *r = b - *r;
-                rr += *r * *r;
             }
-            f64::from(rr)
+            f64::from(row_sum(row, row, |r, _| r * r))
         };
         let (x, r) = (&self.x, &mut self.r);
         apply_weighted(x, alpha2, &wt, self.dims, r, &mut self.row_dots, finish)
@@ -753,14 +774,13 @@ impl PoissonL1 {
             .enumerate()
             .map(|(row, ((x, r), (p, q)))| {
                 let a = a[row / h];
-                let (mut rr, mut change) = (0.0f32, 0.0f32);
                 for (((x, r), &p), &q) in x.iter_mut().zip(r.iter_mut()).zip(p).zip(q) {
-                    let d = a * p;
-                    *x += d;
+                    *x += a * p;
                     *r -= a * q;
-                    rr += *r * *r;
-                    change += d * d / (*x * *x + 0.01);
                 }
+                // Summed in a second loop over the row (in cache), which vectorises.
+                let rr = row_sum(r, r, |r, _| r * r);
+                let change = row_sum(x, p, |x, p| (a * p) * (a * p) / (x * x + 0.01));
                 (f64::from(rr), f64::from(change))
             })
             .collect_into_vec(&mut self.pairs);
@@ -900,13 +920,15 @@ impl PoissonL1 {
         (sums.into_iter().fold(0.0, f64::max) / n as f64).sqrt()
     }
 
-    /// Preconditioned CG on the current weighted system, warm-started from `x`, with
-    /// per-channel step sizes (three independent systems run in lockstep). It also stops once
+    /// Preconditioned CG on the current weighted system, warm-started from `x` (`r` holds its
+    /// residual, `rr` its `r . r` per channel), with per-channel step sizes (three independent
+    /// systems run in lockstep). It also stops once
     /// an iteration moves the image by less than `cg_change` or `min_move` (`cg_relative`'s
     /// share of the previous step's move; 0: none), whichever is larger.
     fn cg(
         &mut self,
         bb: [f64; 3],
+        mut rr: [f64; 3],
         min_move: f64,
         progress: &dyn Fn(f64) -> Result<()>,
     ) -> Result<CgOutcome> {
@@ -914,7 +936,6 @@ impl PoissonL1 {
         let change2 = f64::from(self.cfg.cg_change).max(min_move).powi(2);
         let bb = bb.map(|v| v.max(f64::MIN_POSITIVE));
         let rel = |rr: [f64; 3]| (0..3).map(|c| rr[c] / bb[c]).fold(0.0, f64::max);
-        let mut rr = self.residual();
         if rel(rr) <= tol2 {
             return Ok(CgOutcome {
                 iterations: 0,
@@ -923,7 +944,8 @@ impl PoissonL1 {
             });
         }
         let mut rz = self.precondition();
-        self.p.copy_from_slice(&self.z);
+        // p = z: the next `precondition` rewrites all of `z` before it is read.
+        std::mem::swap(&mut self.p, &mut self.z);
         let max = self.cfg.cg_iterations;
         let (mut it, mut capped) = (0, true);
         while it < max {
@@ -980,6 +1002,141 @@ impl PoissonL1 {
     }
 }
 
+/// Rows per task of [`PoissonL1::reweight`].
+const REWEIGHT_BAND: usize = 16;
+
+/// One band of [`PoissonL1::reweight`]: its index, its rows of the three weight planes and of
+/// the three residual planes.
+type ReweightBand<'a> = (
+    usize,
+    (
+        ((&'a mut [f32], &'a mut [f32]), &'a mut [f32]),
+        ((&'a mut [f32], &'a mut [f32]), &'a mut [f32]),
+    ),
+);
+
+/// The current image and the frame's planes (three planes of `n` values each) that the IRLS
+/// residual rows are made of.
+struct Planes<'a> {
+    x: &'a [f32],
+    colour: &'a [f32],
+    dx: &'a [f32],
+    dy: &'a [f32],
+    n: usize,
+    w: usize,
+}
+
+impl<'a> Planes<'a> {
+    /// Row `y` of plane `c` of `v`.
+    fn row(&self, v: &'a [f32], c: usize, y: usize) -> &'a [f32] {
+        let o = c * self.n + y * self.w;
+        &v[o..o + self.w]
+    }
+
+    /// Row `y` of all three planes of `v`.
+    fn rows(&self, v: &'a [f32], y: usize) -> [&'a [f32]; 3] {
+        std::array::from_fn(|c| self.row(v, c, y))
+    }
+
+    /// The data rows' weights `1 / (||alpha (x - I_b)|| + reg)` of row `y`.
+    fn data_weights(&self, y: usize, alpha: f32, reg: f32, out: &mut [f32]) {
+        let (x, colour) = (self.rows(self.x, y), self.rows(self.colour, y));
+        norm_weights(out, x, colour, None, alpha, reg);
+    }
+
+    /// The horizontal rows' weights of row `y`: `||x(p + 1) - x(p) - dx(p)||` for `p` in the
+    /// first `w - 1` columns, 0 in the last.
+    fn horizontal_weights(&self, y: usize, reg: f32, out: &mut [f32]) {
+        let w = self.w;
+        let (x, dx) = (self.rows(self.x, y), self.rows(self.dx, y));
+        let (right, left) = (x.map(|v| &v[1..]), x.map(|v| &v[..w - 1]));
+        norm_weights(&mut out[..w - 1], right, left, Some(dx), 1.0, reg);
+        out[w - 1] = 0.0;
+    }
+
+    /// The vertical rows' weights of row `y` (of `h`): `||x(p + w) - x(p) - dy(p)||`, all 0
+    /// on the last row.
+    fn vertical_weights(&self, y: usize, h: usize, reg: f32, out: &mut [f32]) {
+        if y + 1 >= h {
+            out.fill(0.0);
+            return;
+        }
+        let (x, below, dy) = (
+            self.rows(self.x, y),
+            self.rows(self.x, y + 1),
+            self.rows(self.dy, y),
+        );
+        norm_weights(out, below, x, Some(dy), 1.0, reg);
+    }
+
+    /// Row `y` of plane `c` of the right-hand side `alpha^2 W_d I_b + D_x^T W_x dx + D_y^T
+    /// W_y dy`, `wt` holding the row's weights and `wy_up` the vertical weights above it
+    /// (`None` on the first row).
+    fn rhs_row(
+        &self,
+        c: usize,
+        y: usize,
+        alpha2: f32,
+        wt: &RowWeights,
+        wy_up: Option<&[f32]>,
+        out: &mut [f32],
+    ) {
+        let w = self.w;
+        let (ib, gx, gy) = (
+            self.row(self.colour, c, y),
+            self.row(self.dx, c, y),
+            self.row(self.dy, c, y),
+        );
+        for i in 0..w {
+            out[i] = alpha2 * wt.data[i] * ib[i] - wt.x[i] * gx[i] - wt.y[i] * gy[i];
+        }
+        for i in 1..w {
+            out[i] += wt.x[i - 1] * gx[i - 1];
+        }
+        if let Some(wy_up) = wy_up {
+            let gy_up = self.row(self.dy, c, y - 1);
+            for i in 0..w {
+                out[i] += wy_up[i] * gy_up[i];
+            }
+        }
+    }
+}
+
+/// `out = 1 / (scale ||a - b - g|| + reg)`, the norm over the three planes' rows (no `g`:
+/// 0). Compiled for AVX-512 and AVX2 too (it takes a square root and a division per cell);
+/// Rust never fuses multiply-adds, so every target gives the same bits.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma"
+))]
+fn norm_weights(
+    out: &mut [f32],
+    a: [&[f32]; 3],
+    b: [&[f32]; 3],
+    g: Option<[&[f32]; 3]>,
+    scale: f32,
+    reg: f32,
+) {
+    let w = out.len();
+    let ([a0, a1, a2], [b0, b1, b2]) = (a.map(|v| &v[..w]), b.map(|v| &v[..w]));
+    match g.map(|g| g.map(|v| &v[..w])) {
+        Some([g0, g1, g2]) => {
+            for i in 0..w {
+                let e0 = a0[i] - b0[i] - g0[i];
+                let e1 = a1[i] - b1[i] - g1[i];
+                let e2 = a2[i] - b2[i] - g2[i];
+                out[i] = 1.0 / (scale * (e0 * e0 + e1 * e1 + e2 * e2).sqrt() + reg);
+            }
+        }
+        None => {
+            for i in 0..w {
+                let (e0, e1, e2) = (a0[i] - b0[i], a1[i] - b1[i], a2[i] - b2[i]);
+                out[i] = 1.0 / (scale * (e0 * e0 + e1 * e1 + e2 * e2).sqrt() + reg);
+            }
+        }
+    }
+}
+
 /// Sums row partials (three planes of equal row count) per channel, in order.
 fn per_channel(partials: &[f64]) -> [f64; 3] {
     let rows = partials.len() / 3;
@@ -1027,9 +1184,9 @@ impl Reconstructor for PoissonL1 {
                 break;
             }
             let t0 = Instant::now();
-            if step > 0 {
-                self.reweight(frame, self.reg(step));
-            }
+            // Step 0's system has unit weights (set before the loop); a later step's is
+            // formed from the current image, with its residual.
+            let reweighted = (step > 0).then(|| self.reweight(frame, self.reg(step)));
             // The DCT's scaling is 1 at unit weights (step 0); Jacobi's is not.
             match self.cfg.preconditioner() {
                 Some(Preconditioner::Dct) if step > 0 => self.update_scale(),
@@ -1047,18 +1204,24 @@ impl Reconstructor for PoissonL1 {
             // Report (and let the caller cancel) at every step, also those whose CG has
             // nothing to do: cancellation latency stays below one step.
             at(0.0)?;
-            let bb = self.weighted_rhs(frame);
+            let (bb, rr) = match reweighted {
+                Some(sums) => sums,
+                None => {
+                    let bb = self.weighted_rhs(frame);
+                    let starts = matches!(
+                        self.cfg.preconditioner(),
+                        Some(Preconditioner::Multigrid | Preconditioner::Jacobi)
+                    );
+                    if let (true, Some(dct)) = (starts, self.start.as_mut()) {
+                        // Unit weights: the DCT solves the system itself (CG then checks it).
+                        self.x.copy_from_slice(&self.b);
+                        dct.solve(&mut self.x);
+                    }
+                    (bb, self.residual())
+                }
+            };
             let t1 = Instant::now();
             reweight_time += t1 - t0;
-            let starts = matches!(
-                self.cfg.preconditioner(),
-                Some(Preconditioner::Multigrid | Preconditioner::Jacobi)
-            );
-            if let (0, true, Some(dct)) = (step, starts, self.start.as_mut()) {
-                // Unit weights: the DCT solves the system itself (CG then checks it).
-                self.x.copy_from_slice(&self.b);
-                dct.solve(&mut self.x);
-            }
             // Once the regularisation is at its floor, the weights only follow the image: a
             // step that barely moves it leaves the next step's weights barely changed, and
             // IRLS may stop after it (not after the last step, which ends anyway).
@@ -1070,7 +1233,7 @@ impl Reconstructor for PoissonL1 {
             if measure {
                 self.before.copy_from_slice(&self.x);
             }
-            let outcome = self.cg(bb, kappa * last_move, &at)?;
+            let outcome = self.cg(bb, rr, kappa * last_move, &at)?;
             cg_time += t1.elapsed();
             total_iters += outcome.iterations;
             last_iterations = Some(outcome.iterations);
@@ -1149,6 +1312,86 @@ mod tests {
             .reconstruct_into(frame, &mut out, &mut report, &Progress::none())
             .unwrap();
         (out, report.notes.join("; "))
+    }
+
+    /// The one-pass setup of a reweighted step forms the IRLS system of the module comment:
+    /// its weights, `b . b` and the residual `r = b - A x` (with `r . r`) against plain
+    /// per-pixel loops in f64, on a frame of several bands (the last one short) and an odd
+    /// width, from an image that is not the base image.
+    #[test]
+    fn reweighting_forms_the_weighted_system_and_its_residual() {
+        let (w, h) = (23, 2 * REWEIGHT_BAND + 7);
+        let n = w * h;
+        let frame = synthetic_frame(w, h, 4.0, 3);
+        let (alpha, reg) = (0.2f64, 0.0125f64);
+        let mut solve = PoissonL1::new(PoissonL1Config::default(), w, h).unwrap();
+        for (i, (x, &c)) in solve.x.iter_mut().zip(frame.color().as_slice()).enumerate() {
+            *x = c + 0.05 * (i as f32 * 0.37).sin();
+        }
+        let (bb, rr) = solve.reweight(&frame, reg as f32);
+
+        let f = |v: &[f32], c: usize, x: usize, y: usize| f64::from(v[c * n + y * w + x]);
+        let (xs, ib) = (solve.x.clone(), frame.color().as_slice());
+        let (gx, gy) = (frame.dx().as_slice(), frame.dy().as_slice());
+        let norm = |e: &dyn Fn(usize) -> f64| (0..3).map(|c| e(c) * e(c)).sum::<f64>().sqrt();
+        let (mut wd, mut wx, mut wy) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+        for y in 0..h {
+            for x in 0..w {
+                let p = y * w + x;
+                wd[p] = 1.0 / (alpha * norm(&|c| f(&xs, c, x, y) - f(ib, c, x, y)) + reg);
+                if x + 1 < w {
+                    let e = |c| f(&xs, c, x + 1, y) - f(&xs, c, x, y) - f(gx, c, x, y);
+                    wx[p] = 1.0 / (norm(&e) + reg);
+                }
+                if y + 1 < h {
+                    let e = |c| f(&xs, c, x, y + 1) - f(&xs, c, x, y) - f(gy, c, x, y);
+                    wy[p] = 1.0 / (norm(&e) + reg);
+                }
+            }
+        }
+        // Relative to `scale`: `r` is a difference of f32 terms of up to that size.
+        let close = |got: f64, want: f64, scale: f64, what: &str| {
+            assert!(
+                (got - want).abs() <= 1e-5 * scale.max(1e-3),
+                "{what}: {got} against {want}"
+            );
+        };
+        for p in 0..n {
+            close(f64::from(solve.wd[p]), wd[p], wd[p], "w_d");
+            close(f64::from(solve.wx[p]), wx[p], wx[p], "w_x");
+            close(f64::from(solve.wy[p]), wy[p], wy[p], "w_y");
+        }
+        for c in 0..3 {
+            // b and A x per pixel, edge by edge.
+            let (mut b, mut ax) = (vec![0.0; n], vec![0.0; n]);
+            for y in 0..h {
+                for x in 0..w {
+                    let p = y * w + x;
+                    b[p] += alpha * alpha * wd[p] * f(ib, c, x, y);
+                    ax[p] += alpha * alpha * wd[p] * f(&xs, c, x, y);
+                    let mut edge = |q: usize, weight: f64, g: f64| {
+                        let flux = weight * (f(&xs, c, q % w, q / w) - f(&xs, c, x, y));
+                        (ax[p], ax[q]) = (ax[p] - flux, ax[q] + flux);
+                        (b[p], b[q]) = (b[p] - weight * g, b[q] + weight * g);
+                    };
+                    if x + 1 < w {
+                        edge(p + 1, wx[p], f(gx, c, x, y));
+                    }
+                    if y + 1 < h {
+                        edge(p + w, wy[p], f(gy, c, x, y));
+                    }
+                }
+            }
+            let mut want_rr = 0.0;
+            for p in 0..n {
+                let (r, scale) = (b[p] - ax[p], b[p].abs().max(ax[p].abs()));
+                close(f64::from(solve.r[c * n + p]), r, scale, "r");
+                want_rr += r * r;
+            }
+            let want_bb = b.iter().map(|b| b * b).sum();
+            close(bb[c], want_bb, want_bb, "b . b");
+            close(rr[c], want_rr, want_rr, "r . r");
+        }
     }
 
     /// One plan reconfigured between the combiner's two candidates gives each the bits of a
