@@ -822,12 +822,10 @@ impl PoissonL1 {
                 .enumerate()
                 .map(|(row, (z, r))| {
                     let o = (row % self.dims.h) * w;
-                    let mut rz = 0.0f64;
                     for ((z, &r), &s) in z.iter_mut().zip(r).zip(&s[o..o + w]) {
                         *z = r * s;
-                        rz += f64::from(r) * f64::from(*z);
                     }
-                    rz
+                    row_sum(r, z, |r, z| f64::from(r) * f64::from(z))
                 })
                 .collect_into_vec(&mut self.partials);
             self.precond_time += t0.elapsed();
@@ -857,12 +855,10 @@ impl PoissonL1 {
             .enumerate()
             .map(|(row, (z, r))| {
                 let o = (row % rows_per_plane) * w;
-                let mut rz = 0.0f32;
-                for ((z, &r), &s) in z.iter_mut().zip(r).zip(&s[o..o + w]) {
+                for (z, &s) in z.iter_mut().zip(&s[o..o + w]) {
                     *z *= s;
-                    rz += r * *z;
                 }
-                f64::from(rz)
+                f64::from(row_sum(r, z, |r, z| r * z))
             })
             .collect_into_vec(&mut self.partials);
         self.precond_time += t0.elapsed();
