@@ -610,7 +610,11 @@ fn residual_kernel(out: &mut [f32], rows: [&[f32]; 8]) {
 /// above and below; `weights` the shared `ey` above, `ey` below, `ex` and `1 / diag`.
 /// The row goes in blocks of [`LANES`] cells: a block's weights are loaded once for the
 /// three planes, and each plane's block is computed in registers from three overlapping
-/// loads, then stored. Rust never fuses multiply-adds, so every target gives the same bits.
+/// loads, then stored one block late: the next block's loads reach one cell into this one,
+/// and a load that overlaps a store still in flight waits for it (store forwarding fails on
+/// partial overlaps). Storing late changes no value: a kept cell's neighbours are all of the
+/// other colour, which this half-sweep leaves as they are. Rust never fuses multiply-adds, so
+/// every target gives the same bits.
 #[multiversion::multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
     "x86_64+avx2+fma"
@@ -632,6 +636,9 @@ fn relax_kernel(cur: [&mut [f32]; 3], rows: [[&[f32]; 3]; 3], weights: [&[f32]; 
         .each_ref()
         .map(|(cur, rows)| row_ends(cur, *rows, weights));
     let mut s = 1;
+    // The previous block's output of each plane, and where it goes.
+    let mut pending = [[0.0f32; LANES]; 3];
+    let mut pending_at = None;
     while s + LANES < w {
         let block = |v: &[f32], from: usize| -> [f32; LANES] {
             v[from..from + LANES].try_into().expect("in range")
@@ -644,7 +651,7 @@ fn relax_kernel(cur: [&mut [f32]; 3], rows: [[&[f32]; 3]; 3], weights: [&[f32]; 
             block(inv, s),
         );
         let kk: &[bool; LANES] = keep[s..s + LANES].try_into().expect("in range");
-        for (cur, [b, up, down]) in planes.iter_mut() {
+        for ((cur, [b, up, down]), pending) in planes.iter_mut().zip(pending.iter_mut()) {
             let (left, mid, right) = (block(cur, s - 1), block(cur, s), block(cur, s + 1));
             let (bb, uu, dd) = (block(b, s), block(up, s), block(down, s));
             let mut out = [0.0f32; LANES];
@@ -653,9 +660,18 @@ fn relax_kernel(cur: [&mut [f32]; 3], rows: [[&[f32]; 3]; 3], weights: [&[f32]; 
                 let t = t + (el[k] * left[k] + er[k] * right[k]);
                 out[k] = if kk[k] { t * iv[k] } else { mid[k] };
             }
-            cur[s..s + LANES].copy_from_slice(&out);
+            if let Some(at) = pending_at {
+                cur[at..at + LANES].copy_from_slice(pending);
+            }
+            *pending = out;
         }
+        pending_at = Some(s);
         s += LANES;
+    }
+    if let Some(at) = pending_at {
+        for ((cur, _), pending) in planes.iter_mut().zip(&pending) {
+            cur[at..at + LANES].copy_from_slice(pending);
+        }
     }
     for ((cur, rows), ends) in planes.iter_mut().zip(ends) {
         relax_from(cur, *rows, weights, keep, s, ends);
