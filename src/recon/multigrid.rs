@@ -61,6 +61,9 @@ fn min_len(cells: usize) -> usize {
 /// Row `k` (of rows or bands) of three planes, as the parallel passes hand them out.
 type Rows3<'a> = (usize, ((&'a mut [f32], &'a mut [f32]), &'a mut [f32]));
 
+/// One row of a coarse operator's `data`, `ex` and `ey`, as [`aggregate`] fills them.
+type CoarseRow<'a> = ((&'a mut [f32], &'a mut [f32]), &'a mut [f32]);
+
 /// A band of [`Level::smooth`]: its rows of the three planes, its halo, and where its rows'
 /// dot products go (when asked for).
 type BandWork<'a> = ((Rows3<'a>, &'a mut [f32]), Option<&'a mut [f64]>);
@@ -81,13 +84,22 @@ impl Correction<'_> {
     }
 }
 
+/// The operator of a level (see the module comment): `data` on the diagonal, one weight per
+/// horizontal edge (`ex`, 0 in the last column) and per vertical edge (`ey`, 0 in the last
+/// row), row-major planes.
+#[derive(Clone, Default)]
+pub(crate) struct Operator {
+    pub data: Vec<f32>,
+    pub ex: Vec<f32>,
+    pub ey: Vec<f32>,
+}
+
 /// One level's operator and (below the fine level) its vectors.
 #[derive(Clone)]
 struct Level {
     dims: Dims,
-    data: Vec<f32>,
-    ex: Vec<f32>,
-    ey: Vec<f32>,
+    /// Empty on the fine level, whose operator is the caller's (it is not copied).
+    op: Operator,
     /// `1 / diag(A)` (0 where the diagonal is 0).
     inv_diag: Vec<f32>,
     /// Solution and right-hand side, three planes each; empty on the fine level, whose
@@ -110,14 +122,15 @@ pub(crate) struct Multigrid {
     row_dots: Vec<f64>,
 }
 
-/// Bytes a [`Multigrid`] for `w x h` frames holds: four operator planes and the halo
-/// ([`HALF_SWEEPS`] rows on each side of every band, three planes) on every level, and six
-/// vector planes below the fine one (the coarse levels add a third of the fine level's size).
+/// Bytes a [`Multigrid`] for `w x h` frames holds: the halo ([`HALF_SWEEPS`] rows on each
+/// side of every band, three planes) and the inverse diagonal on every level, and three
+/// operator and six vector planes below the fine one (the coarse levels add a third of the
+/// fine level's size).
 pub(crate) fn multigrid_bytes(w: usize, h: usize) -> u64 {
     let n = (w * h) as u64;
-    // Fine level: 4 planes; coarse levels: (4 + 6) planes over n / 3 cells in all.
+    // Fine level: 1 plane; coarse levels: (4 + 6) planes over n / 3 cells in all.
     let halo = 6 * HALF_SWEEPS as u64 * w as u64 * (h.div_ceil(BAND) as u64 + 1);
-    4 * (4 * n + 10 * n.div_ceil(3)) + 4 * halo
+    4 * (n + 10 * n.div_ceil(3)) + 4 * halo
 }
 
 impl Multigrid {
@@ -128,11 +141,18 @@ impl Multigrid {
         loop {
             let n = d.len();
             let fine = levels.is_empty();
+            let op = if fine {
+                Operator::default()
+            } else {
+                Operator {
+                    data: try_vec(n, 0.0)?,
+                    ex: try_vec(n, 0.0)?,
+                    ey: try_vec(n, 0.0)?,
+                }
+            };
             levels.push(Level {
                 dims: d,
-                data: try_vec(n, 0.0)?,
-                ex: try_vec(n, 0.0)?,
-                ey: try_vec(n, 0.0)?,
+                op,
                 inv_diag: try_vec(n, 0.0)?,
                 x: if fine {
                     Vec::new()
@@ -161,38 +181,49 @@ impl Multigrid {
         }
     }
 
-    /// Sets the fine operator to `alpha2 wd + D_x^T W_x D_x + D_y^T W_y D_y` (the weights of
-    /// edges that do not exist must be 0) and rebuilds the coarse levels.
-    pub fn set_operator(&mut self, alpha2: f32, wd: &[f32], wx: &[f32], wy: &[f32]) {
-        let fine = &mut self.levels[0];
-        let w = fine.dims.w;
-        fine.data
-            .par_chunks_mut(w)
-            .zip(wd.par_chunks(w))
-            .for_each(|(d, s)| d.iter_mut().zip(s).for_each(|(d, &s)| *d = alpha2 * s));
-        fine.ex.copy_from_slice(wx);
-        fine.ey.copy_from_slice(wy);
-        fine.update_inv_diag();
+    /// Rebuilds the hierarchy for the fine operator `fine` (`alpha^2 W_d + D_x^T W_x D_x +
+    /// D_y^T W_y D_y` of an IRLS step; the weights of edges that do not exist must be 0), which
+    /// [`Self::apply`] must then be given: the coarse levels and every level's inverse
+    /// diagonal, each level's in the pass that aggregates it.
+    pub fn set_operator(&mut self, fine: &Operator) {
         for l in 1..self.levels.len() {
             let (done, rest) = self.levels.split_at_mut(l);
-            rest[0].aggregate(&done[l - 1]);
-            rest[0].update_inv_diag();
+            let level = &mut done[l - 1];
+            let op = if l == 1 { fine } else { &level.op };
+            aggregate(
+                op,
+                level.dims,
+                &mut level.inv_diag,
+                &mut rest[0].op,
+                rest[0].dims,
+            );
         }
+        let single = self.levels.len() == 1;
+        let last = self.levels.last_mut().expect("at least one level");
+        let op = if single { fine } else { &last.op };
+        inverse_diagonal(op, last.dims, &mut last.inv_diag);
     }
 
-    /// `z = B r`, one V-cycle from zero on each of the three planes of `r`; returns `r . z`
-    /// per plane (as [`super::ops::plane_sums`] would, bit for bit), summed in the cycle's
-    /// last pass while each row of `z` is still in cache.
-    pub fn apply(&mut self, r: &[f32], z: &mut [f32]) -> [f64; 3] {
-        cycle(&mut self.levels, z, r, Some(&mut self.row_dots));
+    /// `z = B r`, one V-cycle from zero on each of the three planes of `r`, with `fine` the
+    /// operator of the last [`Self::set_operator`]; returns `r . z` per plane (as
+    /// [`super::ops::plane_sums`] would, bit for bit), summed in the cycle's last pass while
+    /// each row of `z` is still in cache.
+    pub fn apply(&mut self, fine: &Operator, r: &[f32], z: &mut [f32]) -> [f64; 3] {
+        cycle(&mut self.levels, Some(fine), z, r, Some(&mut self.row_dots));
         // Rows in order within each plane, as `plane_sums` adds them.
         std::array::from_fn(|c| self.row_dots.iter().skip(c).step_by(3).sum())
     }
 }
 
-/// One V-cycle on `levels[0]` from `x = 0`; with `dots`, also each row's `b . x` (see
-/// [`Level::smooth`]).
-fn cycle(levels: &mut [Level], x: &mut [f32], b: &[f32], dots: Option<&mut [f64]>) {
+/// One V-cycle on `levels[0]` from `x = 0` (`fine`: its operator, when it is the caller's);
+/// with `dots`, also each row's `b . x` (see [`Level::smooth`]).
+fn cycle(
+    levels: &mut [Level],
+    fine: Option<&Operator>,
+    x: &mut [f32],
+    b: &[f32],
+    dots: Option<&mut [f64]>,
+) {
     let (level, coarser) = levels.split_first_mut().expect("at least one level");
     let Some(coarse) = coarser.first_mut() else {
         // One cell: A is the scalar data(0).
@@ -206,80 +237,114 @@ fn cycle(levels: &mut [Level], x: &mut [f32], b: &[f32], dots: Option<&mut [f64]
         }
         return;
     };
-    level.smooth(x, b, 0, true, None, None);
+    // Out of the level for the cycle, so the level's passes can borrow it.
+    let own = std::mem::take(&mut level.op);
+    let op = fine.unwrap_or(&own);
+    level.smooth(op, x, b, 0, true, None, None);
     let cd = coarse.dims;
     let (mut cx, mut cb) = (std::mem::take(&mut coarse.x), std::mem::take(&mut coarse.b));
-    level.restrict_residual(x, b, cd, &mut cb);
-    cycle(coarser, &mut cx, &cb, None);
+    level.restrict_residual(op, x, b, cd, &mut cb);
+    cycle(coarser, None, &mut cx, &cb, None);
     let correction = Correction {
         coarse_x: &cx,
         coarse: cd,
     };
-    level.smooth(x, b, 1, false, Some(correction), dots);
+    level.smooth(op, x, b, 1, false, Some(correction), dots);
     (coarser[0].x, coarser[0].b) = (cx, cb);
+    level.op = own;
+}
+
+/// `1 / diag(A)` of row `y` of `op` (of width `w`), 0 where the diagonal is 0: the cell's
+/// `data` and the weights of its (up to four) edges.
+fn inverse_diagonal_row(op: &Operator, w: usize, y: usize, out: &mut [f32]) {
+    let o = y * w;
+    let (data, ex, ey) = (&op.data[o..o + w], &op.ex[o..o + w], &op.ey[o..o + w]);
+    let up = (y >= 1).then(|| &op.ey[o - w..o]);
+    for (i, v) in out[..w].iter_mut().enumerate() {
+        let mut d = data[i] + ex[i] + ey[i];
+        if i >= 1 {
+            d += ex[i - 1];
+        }
+        if let Some(up) = up {
+            d += up[i];
+        }
+        *v = if d > 0.0 { 1.0 / d } else { 0.0 };
+    }
+}
+
+/// [`inverse_diagonal_row`] on every row of a level.
+fn inverse_diagonal(op: &Operator, dims: Dims, out: &mut [f32]) {
+    out.par_chunks_mut(dims.w)
+        .enumerate()
+        .with_min_len(min_len(dims.len()))
+        .for_each(|(y, row)| inverse_diagonal_row(op, dims.w, y, row));
+}
+
+/// The Galerkin operator `coarse` of `fine` under 2 x 2 aggregation (see the module comment),
+/// and in the same pass over `fine` its inverse diagonal `fine_inv`.
+fn aggregate(fine: &Operator, fd: Dims, fine_inv: &mut [f32], coarse: &mut Operator, cd: Dims) {
+    let Dims { w: fw, h: fh } = fd;
+    let cw = cd.w;
+    let each = |(cy, (((data, ex), ey), inv)): (usize, (CoarseRow<'_>, &mut [f32]))| {
+        let y0 = 2 * cy;
+        for (k, row) in inv.chunks_mut(fw).enumerate() {
+            inverse_diagonal_row(fine, fw, y0 + k, row);
+        }
+        // Row `y` of a fine plane (the last one for a row past it: read, never used).
+        fn rows(v: &[f32], y: usize, fw: usize, fh: usize) -> &[f32] {
+            let o = y.min(fh - 1) * fw;
+            &v[o..o + fw]
+        }
+        let rows = |v, y| rows(v, y, fw, fh);
+        let (d0, d1) = (rows(&fine.data, y0), rows(&fine.data, y0 + 1));
+        let (h0, h1) = (rows(&fine.ex, y0), rows(&fine.ex, y0 + 1));
+        let v1 = rows(&fine.ey, y0 + 1);
+        let pairs = fw / 2;
+        if y0 + 1 < fh {
+            // Both fine rows, both fine columns: the cell sums in the order of the general
+            // case below (rows, then columns), so the bits are the same.
+            for cx in 0..pairs {
+                let x0 = 2 * cx;
+                data[cx] = ((d0[x0] + d0[x0 + 1]) + d1[x0]) + d1[x0 + 1];
+                ex[cx] = h0[x0 + 1] + h1[x0 + 1];
+                ey[cx] = v1[x0] + v1[x0 + 1];
+            }
+        }
+        let from = if y0 + 1 < fh { pairs } else { 0 };
+        let ys = if y0 + 1 < fh { y0..y0 + 2 } else { y0..y0 + 1 };
+        for cx in from..cw {
+            let x0 = 2 * cx;
+            let xs = if x0 + 1 < fw { x0..x0 + 2 } else { x0..x0 + 1 };
+            let (mut d, mut h, mut v) = (0.0, 0.0, 0.0);
+            for y in ys.clone() {
+                for x in xs.clone() {
+                    d += fine.data[y * fw + x];
+                }
+                // The fine edge (x0 + 1, x0 + 2) crosses to the next block.
+                if x0 + 1 < fw {
+                    h += fine.ex[y * fw + x0 + 1];
+                }
+            }
+            if y0 + 1 < fh {
+                for x in xs.clone() {
+                    v += fine.ey[(y0 + 1) * fw + x];
+                }
+            }
+            (data[cx], ex[cx], ey[cx]) = (d, h, v);
+        }
+    };
+    coarse
+        .data
+        .par_chunks_mut(cw)
+        .zip(coarse.ex.par_chunks_mut(cw))
+        .zip(coarse.ey.par_chunks_mut(cw))
+        .zip(fine_inv.par_chunks_mut(2 * fw))
+        .enumerate()
+        .with_min_len(min_len(fd.len()))
+        .for_each(each);
 }
 
 impl Level {
-    fn update_inv_diag(&mut self) {
-        let Dims { w, .. } = self.dims;
-        let (data, ex, ey) = (&self.data, &self.ex, &self.ey);
-        let each = |(y, row): (usize, &mut [f32])| {
-            let o = y * w;
-            for (i, v) in row.iter_mut().enumerate() {
-                let mut d = data[o + i] + ex[o + i] + ey[o + i];
-                if i >= 1 {
-                    d += ex[o + i - 1];
-                }
-                if y >= 1 {
-                    d += ey[o + i - w];
-                }
-                *v = if d > 0.0 { 1.0 / d } else { 0.0 };
-            }
-        };
-        self.inv_diag
-            .par_chunks_mut(w)
-            .enumerate()
-            .with_min_len(min_len(self.dims.len()))
-            .for_each(each);
-    }
-
-    /// The Galerkin operator of `fine` under 2 x 2 aggregation (see the module comment).
-    fn aggregate(&mut self, fine: &Level) {
-        let Dims { w: fw, h: fh } = fine.dims;
-        let cw = self.dims.w;
-        let each = |(cy, ((data, ex), ey)): Rows3<'_>| {
-            let y0 = 2 * cy;
-            let ys = if y0 + 1 < fh { y0..y0 + 2 } else { y0..y0 + 1 };
-            for cx in 0..cw {
-                let x0 = 2 * cx;
-                let xs = if x0 + 1 < fw { x0..x0 + 2 } else { x0..x0 + 1 };
-                let (mut d, mut h, mut v) = (0.0, 0.0, 0.0);
-                for y in ys.clone() {
-                    for x in xs.clone() {
-                        d += fine.data[y * fw + x];
-                    }
-                    // The fine edge (x0 + 1, x0 + 2) crosses to the next block.
-                    if x0 + 1 < fw {
-                        h += fine.ex[y * fw + x0 + 1];
-                    }
-                }
-                if y0 + 1 < fh {
-                    for x in xs.clone() {
-                        v += fine.ey[(y0 + 1) * fw + x];
-                    }
-                }
-                (data[cx], ex[cx], ey[cx]) = (d, h, v);
-            }
-        };
-        self.data
-            .par_chunks_mut(cw)
-            .zip(self.ex.par_chunks_mut(cw))
-            .zip(self.ey.par_chunks_mut(cw))
-            .enumerate()
-            .with_min_len(min_len(fine.dims.len()))
-            .for_each(each);
-    }
-
     /// Copies the [`HALF_SWEEPS`] rows above and below every band of `x` (all three planes)
     /// into the halo, with the coarse correction added if there is one: above rows first,
     /// below rows from offset `HALF_SWEEPS` rows, per plane.
@@ -319,8 +384,10 @@ impl Level {
     /// (their neighbours are not there), which still leaves the band's own rows exact after
     /// the last one. The result is that of the plain sweeps, bit for bit, for any number of
     /// threads.
+    #[allow(clippy::too_many_arguments)]
     fn smooth(
         &mut self,
+        op: &Operator,
         x: &mut [f32],
         b: &[f32],
         first: usize,
@@ -376,7 +443,7 @@ impl Level {
                             this.start_row(rows[r], lo + r, colour, &b[c * n..(c + 1) * n]);
                         }
                     } else if (lo == 0 || r > j) && (hi == h || r + j + 1 < total) {
-                        this.relax_rows(&mut planes, r, lo + r, b, colour);
+                        this.relax_rows(op, &mut planes, r, lo + r, b, colour);
                     }
                     // After the last half-sweep a band row is final: its b . x.
                     if let Some(dots) = dots.as_deref_mut() {
@@ -431,6 +498,7 @@ impl Level {
     /// weights are read once for all of them.
     fn relax_rows(
         &self,
+        op: &Operator,
         planes: &mut [Vec<&mut [f32]>],
         r: usize,
         y: usize,
@@ -448,7 +516,7 @@ impl Level {
         let (x2, up2, down2) = neighbours(p2, r, y, h, zeros);
         let br = |c: usize| &b[c * n + o..c * n + o + w];
         // The last row's `ey` is 0; above the first row, `zeros` stands in.
-        let ey_up = if y >= 1 { &self.ey[o - w..o] } else { zeros };
+        let ey_up = if y >= 1 { &op.ey[o - w..o] } else { zeros };
         let first = (colour + y) % 2;
         relax_kernel(
             [x0, x1, x2],
@@ -459,8 +527,8 @@ impl Level {
             ],
             [
                 ey_up,
-                &self.ey[o..o + w],
-                &self.ex[o..o + w],
+                &op.ey[o..o + w],
+                &op.ex[o..o + w],
                 &self.inv_diag[o..o + w],
             ],
             &self.mask[first..first + w],
@@ -468,7 +536,14 @@ impl Level {
     }
 
     /// `coarse_b = P^T (b - A x)` on all three planes.
-    fn restrict_residual(&self, x: &[f32], b: &[f32], coarse: Dims, coarse_b: &mut [f32]) {
+    fn restrict_residual(
+        &self,
+        op: &Operator,
+        x: &[f32],
+        b: &[f32],
+        coarse: Dims,
+        coarse_b: &mut [f32],
+    ) {
         let Dims { w, h } = self.dims;
         let (n, cn, cw) = (w * h, coarse.len(), coarse.w);
         let (b0, rest) = coarse_b.split_at_mut(cn);
@@ -484,7 +559,7 @@ impl Level {
             for y in 2 * cy..(2 * cy + 2).min(h) {
                 for (c, out) in outs.iter_mut().enumerate() {
                     let (x, b) = (&x[c * n..(c + 1) * n], &b[c * n..(c + 1) * n]);
-                    self.residual_row(x, b, y, row_buf);
+                    self.residual_row(op, x, b, y, row_buf);
                     for (o, pair) in out.iter_mut().zip(row_buf.chunks(2)) {
                         *o += pair.iter().sum::<f32>();
                     }
@@ -501,12 +576,12 @@ impl Level {
 
     /// `out = (b - A x)` on row `y` of one plane, branch-free inside the row (the weights of
     /// missing edges are 0, and the rows outside are skipped).
-    fn residual_row(&self, x: &[f32], b: &[f32], y: usize, out: &mut [f32]) {
+    fn residual_row(&self, op: &Operator, x: &[f32], b: &[f32], y: usize, out: &mut [f32]) {
         let Dims { w, h } = self.dims;
         let o = y * w;
         let zeros = &self.zeros[..];
         let (ey_up, up) = if y >= 1 {
-            (&self.ey[o - w..o], &x[o - w..o])
+            (&op.ey[o - w..o], &x[o - w..o])
         } else {
             (zeros, zeros)
         };
@@ -520,11 +595,11 @@ impl Level {
             [
                 &x[o..o + w],
                 &b[o..o + w],
-                &self.data[o..o + w],
-                &self.ex[o..o + w],
+                &op.data[o..o + w],
+                &op.ex[o..o + w],
                 ey_up,
                 up,
-                &self.ey[o..o + w],
+                &op.ey[o..o + w],
                 down,
             ],
         );
@@ -737,9 +812,9 @@ const LANES: usize = 16;
 mod tests {
     use super::*;
 
-    /// `A u` for one plane of a level, written independently of the cycle's passes.
-    fn apply(level: &Level, u: &[f32]) -> Vec<f32> {
-        let Dims { w, h } = level.dims;
+    /// `A u` for one plane of a level's operator, written independently of the cycle's passes.
+    fn apply(level: &Operator, dims: Dims, u: &[f32]) -> Vec<f32> {
+        let Dims { w, h } = dims;
         let mut out = vec![0.0; w * h];
         for y in 0..h {
             for i in 0..w {
@@ -761,7 +836,12 @@ mod tests {
     }
 
     /// Iterations of preconditioned CG from 0 to a relative residual of 1e-5 (at most 2000).
-    fn pcg(op: &Level, b: &[f32], mut precondition: impl FnMut(&[f32], &mut [f32])) -> usize {
+    fn pcg(
+        op: &Operator,
+        dims: Dims,
+        b: &[f32],
+        mut precondition: impl FnMut(&[f32], &mut [f32]),
+    ) -> usize {
         let n = b.len();
         let dot = |a: &[f32], b: &[f32]| {
             a.iter()
@@ -775,7 +855,7 @@ mod tests {
         let mut p = z.clone();
         let mut rz = dot(&r, &z);
         for it in 1..=2000 {
-            let q = apply(op, &p);
+            let q = apply(op, dims, &p);
             let a = (rz / dot(&p, &q)) as f32;
             for i in 0..n {
                 x[i] += a * p[i];
@@ -804,21 +884,31 @@ mod tests {
             .collect()
     }
 
-    fn operator(w: usize, h: usize) -> (Multigrid, Vec<f32>, Vec<f32>, Vec<f32>) {
+    /// A planned multigrid for a fine operator of random weights, and that operator.
+    fn operator(w: usize, h: usize) -> (Multigrid, Operator) {
         let n = w * h;
-        let wd = weights(n, 1);
-        let mut wx = weights(n, 2);
-        let mut wy = weights(n, 3);
-        wx.chunks_mut(w).for_each(|r| r[w - 1] = 0.0);
-        wy[(h - 1) * w..].fill(0.0);
+        let mut op = Operator {
+            data: weights(n, 1).into_iter().map(|v| 0.04 * v).collect(),
+            ex: weights(n, 2),
+            ey: weights(n, 3),
+        };
+        op.ex.chunks_mut(w).for_each(|r| r[w - 1] = 0.0);
+        op.ey[(h - 1) * w..].fill(0.0);
         let mut mg = Multigrid::new(Dims { w, h }).unwrap();
-        mg.set_operator(0.04, &wd, &wx, &wy);
-        (mg, wd, wx, wy)
+        mg.set_operator(&op);
+        (mg, op)
     }
 
     /// One half-sweep of red-black Gauss-Seidel on one plane, cell by cell, with the
     /// kernel's order of operations (from `x = 0` with `start`).
-    fn half_sweep(level: &Level, x: &mut [f32], b: &[f32], colour: usize, start: bool) {
+    fn half_sweep(
+        level: &Level,
+        op: &Operator,
+        x: &mut [f32],
+        b: &[f32],
+        colour: usize,
+        start: bool,
+    ) {
         let Dims { w, h } = level.dims;
         for y in 0..h {
             for i in 0..w {
@@ -834,19 +924,19 @@ mod tests {
                     continue;
                 }
                 let (ey_up, up) = if y >= 1 {
-                    (level.ey[p - w], x[p - w])
+                    (op.ey[p - w], x[p - w])
                 } else {
                     (0.0, 0.0)
                 };
                 let down = if y + 1 < h { x[p + w] } else { 0.0 };
-                let mut t = b[p] + ey_up * up + level.ey[p] * down;
+                let mut t = b[p] + ey_up * up + op.ey[p] * down;
                 if w >= 2 {
                     t += if i == 0 {
-                        level.ex[p] * x[p + 1]
+                        op.ex[p] * x[p + 1]
                     } else if i == w - 1 {
-                        level.ex[p - 1] * x[p - 1]
+                        op.ex[p - 1] * x[p - 1]
                     } else {
-                        level.ex[p - 1] * x[p - 1] + level.ex[p] * x[p + 1]
+                        op.ex[p - 1] * x[p - 1] + op.ex[p] * x[p + 1]
                     };
                 }
                 x[p] = t * level.inv_diag[p];
@@ -861,7 +951,7 @@ mod tests {
     fn smoothing_is_plain_red_black_gauss_seidel() {
         for (w, h) in [(37, 75), (64, 70), (5, 33), (40, 1), (1, 40), (200, 170)] {
             let n = w * h;
-            let (mut mg, ..) = operator(w, h);
+            let (mut mg, op) = operator(w, h);
             let cd = Dims {
                 w: w.div_ceil(2),
                 h: h.div_ceil(2),
@@ -872,12 +962,12 @@ mod tests {
             let colours = |first: usize| (0..HALF_SWEEPS).map(move |j| (first + j) % 2);
 
             let mut x = vec![f32::NAN; 3 * n];
-            level.smooth(&mut x, &b, 0, true, None, None);
+            level.smooth(&op, &mut x, &b, 0, true, None, None);
             let mut plain = vec![f32::NAN; 3 * n];
             for c in 0..3 {
                 let (x, b) = (&mut plain[c * n..(c + 1) * n], &b[c * n..(c + 1) * n]);
                 for (j, colour) in colours(0).enumerate() {
-                    half_sweep(level, x, b, colour, j == 0);
+                    half_sweep(level, &op, x, b, colour, j == 0);
                 }
             }
             let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
@@ -887,14 +977,14 @@ mod tests {
                 coarse_x: &coarse_x,
                 coarse: cd,
             };
-            level.smooth(&mut x, &b, 1, false, Some(correction), None);
+            level.smooth(&op, &mut x, &b, 1, false, Some(correction), None);
             for c in 0..3 {
                 let (x, b) = (&mut plain[c * n..(c + 1) * n], &b[c * n..(c + 1) * n]);
                 for (p, x) in x.iter_mut().enumerate() {
                     *x += coarse_x[c * cd.len() + (p / w / 2) * cd.w + (p % w) / 2];
                 }
                 for colour in colours(1) {
-                    half_sweep(level, x, b, colour, false);
+                    half_sweep(level, &op, x, b, colour, false);
                 }
             }
             assert_eq!(bits(&x), bits(&plain), "{w}x{h} with a correction");
@@ -902,13 +992,15 @@ mod tests {
     }
 
     /// The coarse operator is the Galerkin product `P^T A P`: for random coarse `v`,
-    /// `A_c v == P^T A (P v)`, with `A` applied independently.
+    /// `A_c v == P^T A (P v)`, with `A` applied independently; every level's inverse diagonal
+    /// is its operator's.
     #[test]
     fn coarse_levels_are_galerkin_products() {
         for (w, h) in [(7, 5), (8, 6), (1, 9), (13, 1)] {
-            let (mg, ..) = operator(w, h);
+            let (mg, op) = operator(w, h);
             for l in 0..mg.levels.len() - 1 {
                 let (fine, coarse) = (&mg.levels[l], &mg.levels[l + 1]);
+                let fine_op = if l == 0 { &op } else { &fine.op };
                 let v: Vec<f32> = (0..coarse.dims.len())
                     .map(|i| (i as f32 * 0.7).sin())
                     .collect();
@@ -918,13 +1010,30 @@ mod tests {
                         v[(y / 2) * coarse.dims.w + x / 2]
                     })
                     .collect();
-                let apv = apply(fine, &pv);
+                let apv = apply(fine_op, fine.dims, &pv);
                 let mut ptapv = vec![0.0f32; coarse.dims.len()];
                 for (p, a) in apv.iter().enumerate() {
                     let (y, x) = (p / fine.dims.w, p % fine.dims.w);
                     ptapv[(y / 2) * coarse.dims.w + x / 2] += a;
                 }
-                let av = apply(coarse, &v);
+                // The fine level's inverse diagonal, made in the same pass: 1 / (data + the
+                // weights of the cell's edges).
+                let Dims { w: fw, h: fh } = fine.dims;
+                for p in 0..fw * fh {
+                    let (x, y) = (p % fw, p / fw);
+                    let mut d = fine_op.data[p] + fine_op.ex[p] + fine_op.ey[p];
+                    if x >= 1 {
+                        d += fine_op.ex[p - 1];
+                    }
+                    if y >= 1 {
+                        d += fine_op.ey[p - fw];
+                    }
+                    assert!(
+                        (fine.inv_diag[p] - 1.0 / d).abs() <= 1e-6 / d,
+                        "{w}x{h} level {l} cell {p}"
+                    );
+                }
+                let av = apply(&coarse.op, coarse.dims, &v);
                 for (a, b) in av.iter().zip(&ptapv) {
                     assert!(
                         (a - b).abs() <= 1e-4 * (1.0 + b.abs()),
@@ -944,10 +1053,10 @@ mod tests {
         // in the last pass are those of `plane_sums` on the result, bit for bit.
         let (w, h) = (203, 150);
         let n = w * h;
-        let (mut mg, ..) = operator(w, h);
+        let (mut mg, op) = operator(w, h);
         let r: Vec<f32> = (0..3 * n).map(|i| (i as f32 * 0.013).sin()).collect();
         let mut z = vec![0.0; 3 * n];
-        let dots = mg.apply(&r, &mut z);
+        let dots = mg.apply(&op, &r, &mut z);
         let sums = crate::recon::ops::plane_sums(&r, &z, w, n, &mut Vec::new(), |a, b| {
             f64::from(a) * f64::from(b)
         });
@@ -959,14 +1068,14 @@ mod tests {
     fn the_cycle_is_spd_and_converges() {
         let (w, h) = (37, 23);
         let n = w * h;
-        let (mut mg, ..) = operator(w, h);
+        let (mut mg, op) = operator(w, h);
         let u: Vec<f32> = (0..3 * n)
             .map(|i| ((i * 7 % 11) as f32 - 5.0) / 3.0)
             .collect();
         let v: Vec<f32> = (0..3 * n).map(|i| (i as f32 * 0.37).cos()).collect();
         let (mut bu, mut bv) = (vec![0.0; 3 * n], vec![0.0; 3 * n]);
-        mg.apply(&u, &mut bu);
-        mg.apply(&v, &mut bv);
+        mg.apply(&op, &u, &mut bu);
+        mg.apply(&op, &v, &mut bv);
         let dot = |a: &[f32], b: &[f32]| {
             a.iter()
                 .zip(b)
@@ -982,19 +1091,15 @@ mod tests {
         // Conjugate gradients on plane 0 to a relative residual of 1e-5: preconditioned by the
         // cycle, in a handful of iterations, several times fewer than with Jacobi's.
         let b: Vec<f32> = v[..n].to_vec();
-        let op = Level {
-            x: Vec::new(),
-            b: Vec::new(),
-            ..mg.levels[0].clone()
-        };
-        let cycle_its = pcg(&op, &b, |r, z| {
+        let (dims, inv_diag) = (mg.levels[0].dims, mg.levels[0].inv_diag.clone());
+        let cycle_its = pcg(&op, dims, &b, |r, z| {
             let (mut r3, mut z3) = (vec![0.0; 3 * n], vec![0.0; 3 * n]);
             r3[..n].copy_from_slice(r);
-            mg.apply(&r3, &mut z3);
+            mg.apply(&op, &r3, &mut z3);
             z.copy_from_slice(&z3[..n]);
         });
-        let jacobi_its = pcg(&op, &b, |r, z| {
-            for ((z, &r), &d) in z.iter_mut().zip(r).zip(&op.inv_diag) {
+        let jacobi_its = pcg(&op, dims, &b, |r, z| {
+            for ((z, &r), &d) in z.iter_mut().zip(r).zip(&inv_diag) {
                 *z = r * d;
             }
         });

@@ -79,15 +79,16 @@ pub(crate) fn grad_adjoint(gx: &[f32], gy: &[f32], d: Dims, out: &mut [f32]) {
     });
 }
 
-/// Per-row weights of the IRLS residual rows: `data` for `alpha (I - I_b)`, `x` and `y` for
-/// the gradient rows (last column of `x`, last row of `y` unused).
+/// The weighted operator of an IRLS step: `data` its diagonal (`alpha^2` times the weights of
+/// the data rows `alpha (I - I_b)`), `x` and `y` the weights of the gradient rows (last column
+/// of `x`, last row of `y` unused).
 pub(crate) struct RowWeights<'a> {
     pub data: &'a [f32],
     pub x: &'a [f32],
     pub y: &'a [f32],
 }
 
-/// `out = alpha2 * wd * u + D_x^T (wx * D_x u) + D_y^T (wy * D_y u)` on each of the three
+/// `out = data * u + D_x^T (wx * D_x u) + D_y^T (wy * D_y u)` on each of the three
 /// planes of `u`, each row then handed to `finish(plane, y, row, u_row)`, which may rewrite
 /// it (a residual) and returns the row's share of a per-plane sum (f64, rows added in order,
 /// a fixed order): conjugate gradients needs `u . out` or `r . r` next, and gets it without
@@ -98,7 +99,6 @@ pub(crate) struct RowWeights<'a> {
 /// weights are read from memory once. `partials` is scratch reused between calls.
 pub(crate) fn apply_weighted(
     u: &[f32],
-    alpha2: f32,
     wt: &RowWeights,
     d: Dims,
     out: &mut [f32],
@@ -126,7 +126,7 @@ pub(crate) fn apply_weighted(
                 let ur = &u[o..o + w];
                 let up = (y >= 1).then(|| (&u[o - w..o], &wt.y[o - w..o]));
                 let down = (y + 1 < h).then(|| &u[o + w..o + 2 * w]);
-                weighted_row(row, alpha2, &row_weights, ur, up, down);
+                weighted_row(row, &row_weights, ur, up, down);
                 dots[plane] = finish(plane, y, row, ur);
             }
             dots
@@ -142,7 +142,6 @@ pub(crate) fn apply_weighted(
 #[inline]
 pub(crate) fn weighted_row(
     row: &mut [f32],
-    alpha2: f32,
     wt: &RowWeights,
     ur: &[f32],
     up: Option<(&[f32], &[f32])>,
@@ -151,7 +150,7 @@ pub(crate) fn weighted_row(
     let w = row.len();
     let (wd, wx, wy) = (wt.data, wt.x, wt.y);
     for ((v, &c), &k) in row.iter_mut().zip(ur).zip(wd) {
-        *v = alpha2 * k * c;
+        *v = k * c;
     }
     // Horizontal edges (x, x+1), x < w - 1, each with flux wx[x] (u[x+1] - u[x]).
     if w >= 2 {

@@ -43,7 +43,7 @@ use rayon::prelude::*;
 
 use super::band::{self, banded, NOISE_BAND};
 use super::dct::DctPoisson;
-use super::multigrid::{multigrid_bytes, Multigrid};
+use super::multigrid::{multigrid_bytes, Multigrid, Operator};
 use super::ops::{apply_weighted, plane_sums, row_sum, weighted_row, Dims, RowWeights};
 use super::param::{choices, Param, Params, Preset, Range};
 use super::poisson_l2::{ALPHA_RANGE, DEFAULT_ALPHA};
@@ -413,10 +413,11 @@ impl Register for PoissonL1Config {
 /// Bytes a [`PoissonL1`] holds (without the output image): six 3-plane CG vectors and four
 /// weight planes (22 f32 planes) with 4 B a pixel to spare, and the preconditioner: the DCT's
 /// eigenvalues and transposed planes (4 planes; with the multigrid too, for step 0) and the
-/// multigrid hierarchy ([`multigrid_bytes`], about 33 B a pixel). With the output, peak heap
-/// measured by a counting allocator (tests/memory.rs, `peak_table`): 149.9 and 149.6 B a pixel
-/// at 640 x 360 and 1280 x 720 with the multigrid (estimate 1.05x and 1.03x), 100.0 without a
-/// preconditioner (preset `published`, estimate 1.05x).
+/// multigrid hierarchy ([`multigrid_bytes`], about 21 B a pixel: its fine level reads the
+/// solve's operator). With the output, peak heap measured by a counting allocator
+/// (tests/memory.rs, `peak_table`, twenty-seventh session): 150.0 and 149.6 B a pixel at
+/// 640 x 360 and 1280 x 720 with the multigrid (estimate 1.05x and 1.03x), 100.2 and 100.1
+/// without a preconditioner (preset `published`, estimate 1.08x and 1.05x).
 pub(crate) fn l1_memory(config: &PoissonL1Config, width: usize, height: usize) -> u64 {
     // With `step_change` or `cg_relative`, the image before each step (3 planes).
     let before = if config.step_change > 0.0 || config.cg_relative > 0.0 {
@@ -451,9 +452,9 @@ pub(crate) struct PoissonL1 {
     p: Vec<f32>,
     q: Vec<f32>,
     b: Vec<f32>,
-    wd: Vec<f32>,
-    wx: Vec<f32>,
-    wy: Vec<f32>,
+    /// The weighted system's operator: `alpha^2 w_d` on the diagonal, `w_x` and `w_y` on the
+    /// edges (0 on the rows that do not exist). The multigrid reads it where it is.
+    op: Operator,
     /// Diagonal scaling of the DCT preconditioner: `sqrt(diag(L) / diag(A))`, with `L` the
     /// unweighted operator the DCT inverts and `A` the weighted one; with Jacobi,
     /// `1 / diag(A)`.
@@ -525,9 +526,11 @@ impl PoissonL1 {
             p: v3()?,
             q: v3()?,
             b: v3()?,
-            wd: try_vec(n, 1.0)?,
-            wx: try_vec(n, 1.0)?,
-            wy: try_vec(n, 1.0)?,
+            op: Operator {
+                data: try_vec(n, 1.0)?,
+                ex: try_vec(n, 1.0)?,
+                ey: try_vec(n, 1.0)?,
+            },
             scale: try_vec(n, 1.0)?,
             partials: Vec::new(),
             row_dots: Vec::new(),
@@ -588,11 +591,12 @@ impl PoissonL1 {
     /// of `y`) at weight 0 so that every later pass can ignore the boundary.
     fn reset_weights(&mut self) {
         let Dims { w, h } = self.dims;
-        for v in [&mut self.wd, &mut self.wx, &mut self.wy, &mut self.scale] {
+        for v in [&mut self.op.ex, &mut self.op.ey, &mut self.scale] {
             v.fill(1.0);
         }
-        self.wx.chunks_mut(w).for_each(|row| row[w - 1] = 0.0);
-        self.wy[(h - 1) * w..].fill(0.0);
+        self.op.data.fill(self.cfg.alpha * self.cfg.alpha);
+        self.op.ex.chunks_mut(w).for_each(|row| row[w - 1] = 0.0);
+        self.op.ey[(h - 1) * w..].fill(0.0);
     }
 
     /// Sets up IRLS step `k >= 1` from the current `x` in one pass over memory: the weights
@@ -608,7 +612,7 @@ impl PoissonL1 {
     fn reweight(&mut self, frame: &Frame, reg: f32) -> ([f64; 3], [f64; 3]) {
         let Dims { w, h } = self.dims;
         let n = w * h;
-        let (alpha, alpha2) = (self.cfg.alpha, self.cfg.alpha * self.cfg.alpha);
+        let alpha = self.cfg.alpha;
         let planes = Planes {
             x: &self.x,
             colour: frame.color().as_slice(),
@@ -621,7 +625,7 @@ impl PoissonL1 {
         let (r1, r2) = rest.split_at_mut(n);
         let len = REWEIGHT_BAND * w;
         let band = |(up, b): &mut (Vec<f32>, Vec<f32>),
-                    (k, (((wd, wx), wy), ((r0, r1), r2))): ReweightBand<'_>| {
+                    (k, (((data, wx), wy), ((r0, r1), r2))): ReweightBand<'_>| {
             let top = k * REWEIGHT_BAND;
             if top > 0 {
                 // The vertical weights above the band, which its first row's system needs.
@@ -629,9 +633,9 @@ impl PoissonL1 {
             }
             let mut sums = [0.0f64; 6];
             let mut r = [r0, r1, r2];
-            for j in 0..wd.len() / w {
+            for j in 0..data.len() / w {
                 let (y, o) = (top + j, j * w);
-                planes.data_weights(y, alpha, reg, &mut wd[o..o + w]);
+                planes.data_weights(y, alpha, reg, &mut data[o..o + w]);
                 planes.horizontal_weights(y, reg, &mut wx[o..o + w]);
                 let (done, wy) = wy.split_at_mut(o);
                 planes.vertical_weights(y, h, reg, &mut wy[..w]);
@@ -641,18 +645,18 @@ impl PoissonL1 {
                     _ => Some(&done[o - w..]),
                 };
                 let row_weights = RowWeights {
-                    data: &wd[o..o + w],
+                    data: &data[o..o + w],
                     x: &wx[o..o + w],
                     y: &wy[..w],
                 };
                 for (c, r) in r.iter_mut().enumerate() {
                     let r = &mut r[o..o + w];
                     b.resize(w, 0.0);
-                    planes.rhs_row(c, y, alpha2, &row_weights, wy_up, b);
+                    planes.rhs_row(c, y, &row_weights, wy_up, b);
                     let x = |y: usize| planes.row(planes.x, c, y);
                     let above = wy_up.map(|wy_up| (x(y - 1), wy_up));
                     let below = (y + 1 < h).then(|| x(y + 1));
-                    weighted_row(r, alpha2, &row_weights, x(y), above, below);
+                    weighted_row(r, &row_weights, x(y), above, below);
                     for (r, &b) in r.iter_mut().zip(b.iter()) {
                         *r = b - *r;
                     }
@@ -663,10 +667,11 @@ impl PoissonL1 {
             sums
         };
         let sums: Vec<[f64; 6]> = self
-            .wd
+            .op
+            .data
             .par_chunks_mut(len)
-            .zip(self.wx.par_chunks_mut(len))
-            .zip(self.wy.par_chunks_mut(len))
+            .zip(self.op.ex.par_chunks_mut(len))
+            .zip(self.op.ey.par_chunks_mut(len))
             .zip(
                 r0.par_chunks_mut(len)
                     .zip(r1.par_chunks_mut(len))
@@ -693,7 +698,6 @@ impl PoissonL1 {
     /// Relies on the zero weights of the rows that do not exist (see `reset_weights`).
     fn weighted_rhs(&mut self, frame: &Frame) -> [f64; 3] {
         let Dims { w, h } = self.dims;
-        let alpha2 = self.cfg.alpha * self.cfg.alpha;
         let planes = Planes {
             x: &self.x,
             colour: frame.color().as_slice(),
@@ -702,7 +706,7 @@ impl PoissonL1 {
             n: w * h,
             w,
         };
-        let (wd, wx, wy) = (&self.wd, &self.wx, &self.wy);
+        let (data, wx, wy) = (&self.op.data, &self.op.ex, &self.op.ey);
         self.b
             .par_chunks_mut(w)
             .enumerate()
@@ -710,12 +714,12 @@ impl PoissonL1 {
                 let (c, y) = (r / h, r % h);
                 let k = y * w; // offset in the (shared) weight planes
                 let row_weights = RowWeights {
-                    data: &wd[k..k + w],
+                    data: &data[k..k + w],
                     x: &wx[k..k + w],
                     y: &wy[k..k + w],
                 };
                 let wy_up = (y >= 1).then(|| &wy[k - w..k]);
-                planes.rhs_row(c, y, alpha2, &row_weights, wy_up, row);
+                planes.rhs_row(c, y, &row_weights, wy_up, row);
                 f64::from(row_sum(row, row, |v, _| v * v))
             })
             .collect_into_vec(&mut self.partials);
@@ -725,14 +729,12 @@ impl PoissonL1 {
     /// `dst = A src` per channel; returns `src . dst`.
     fn apply(&mut self, src: &[f32], dst: &mut [f32]) -> [f64; 3] {
         let wt = RowWeights {
-            data: &self.wd,
-            x: &self.wx,
-            y: &self.wy,
+            data: &self.op.data,
+            x: &self.op.ex,
+            y: &self.op.ey,
         };
-        let alpha2 = self.cfg.alpha * self.cfg.alpha;
         apply_weighted(
             src,
-            alpha2,
             &wt,
             self.dims,
             dst,
@@ -744,11 +746,10 @@ impl PoissonL1 {
     /// `r = b - A x`, in the same pass as `A x`; returns `r . r` per channel.
     fn residual(&mut self) -> [f64; 3] {
         let wt = RowWeights {
-            data: &self.wd,
-            x: &self.wx,
-            y: &self.wy,
+            data: &self.op.data,
+            x: &self.op.ex,
+            y: &self.op.ey,
         };
-        let alpha2 = self.cfg.alpha * self.cfg.alpha;
         let Dims { w, h } = self.dims;
         let b = &self.b;
         let finish = |plane: usize, y: usize, row: &mut [f32], _: &[f32]| {
@@ -759,7 +760,7 @@ impl PoissonL1 {
             f64::from(row_sum(row, row, |r, _| r * r))
         };
         let (x, r) = (&self.x, &mut self.r);
-        apply_weighted(x, alpha2, &wt, self.dims, r, &mut self.row_dots, finish)
+        apply_weighted(x, &wt, self.dims, r, &mut self.row_dots, finish)
     }
 
     /// `x += a p`, `r -= a q` (per-channel `a`); returns `r . r` per channel and, per
@@ -832,7 +833,7 @@ impl PoissonL1 {
             return per_channel(&self.partials);
         }
         if let (Preconditioner::Multigrid, Some(mg)) = (kind, self.multigrid.as_mut()) {
-            let rz = mg.apply(&self.r, &mut self.z);
+            let rz = mg.apply(&self.op, &self.r, &mut self.z);
             self.precond_time += t0.elapsed();
             return rz;
         }
@@ -870,13 +871,13 @@ impl PoissonL1 {
         let Dims { w, h } = self.dims;
         let alpha2 = self.cfg.alpha * self.cfg.alpha;
         let jacobi = self.cfg.preconditioner() == Some(Preconditioner::Jacobi);
-        let (wd, wx, wy) = (&self.wd, &self.wx, &self.wy);
+        let (data, wx, wy) = (&self.op.data, &self.op.ex, &self.op.ey);
         self.scale
             .par_chunks_mut(w)
             .enumerate()
             .for_each(|(y, row)| {
                 let k = y * w;
-                let (wdr, wxr, wyr) = (&wd[k..k + w], &wx[k..k + w], &wy[k..k + w]);
+                let (dr, wxr, wyr) = (&data[k..k + w], &wx[k..k + w], &wy[k..k + w]);
                 // diag(L): alpha^2 plus the number of neighbours; diag(A): alpha^2 wd plus the
                 // weights of the edges at the pixel.
                 let vertical = f32::from(u8::from(y >= 1) + u8::from(y + 1 < h));
@@ -884,7 +885,7 @@ impl PoissonL1 {
                     let horizontal = f32::from(u8::from(i >= 1) + u8::from(i + 1 < w));
                     let left = if i >= 1 { wxr[i - 1] } else { 0.0 };
                     let up = if y >= 1 { wy[k + i - w] } else { 0.0 };
-                    let da = alpha2 * wdr[i] + left + wxr[i] + up + wyr[i];
+                    let da = dr[i] + left + wxr[i] + up + wyr[i];
                     let dl = alpha2 + horizontal + vertical;
                     row[i] = if jacobi {
                         if da > 0.0 {
@@ -1034,10 +1035,14 @@ impl<'a> Planes<'a> {
         std::array::from_fn(|c| self.row(v, c, y))
     }
 
-    /// The data rows' weights `1 / (||alpha (x - I_b)|| + reg)` of row `y`.
+    /// The data rows' weights `w_d = 1 / (||alpha (x - I_b)|| + reg)` of row `y`, times
+    /// `alpha^2`.
     fn data_weights(&self, y: usize, alpha: f32, reg: f32, out: &mut [f32]) {
         let (x, colour) = (self.rows(self.x, y), self.rows(self.colour, y));
         norm_weights(out, x, colour, None, alpha, reg);
+        // The operator's diagonal: alpha^2 w_d.
+        let alpha2 = alpha * alpha;
+        out.iter_mut().for_each(|v| *v *= alpha2);
     }
 
     /// The horizontal rows' weights of row `y`: `||x(p + 1) - x(p) - dx(p)||` for `p` in the
@@ -1066,17 +1071,9 @@ impl<'a> Planes<'a> {
     }
 
     /// Row `y` of plane `c` of the right-hand side `alpha^2 W_d I_b + D_x^T W_x dx + D_y^T
-    /// W_y dy`, `wt` holding the row's weights and `wy_up` the vertical weights above it
-    /// (`None` on the first row).
-    fn rhs_row(
-        &self,
-        c: usize,
-        y: usize,
-        alpha2: f32,
-        wt: &RowWeights,
-        wy_up: Option<&[f32]>,
-        out: &mut [f32],
-    ) {
+    /// W_y dy`, `wt` holding the row's operator (`alpha^2 w_d`, `w_x`, `w_y`) and `wy_up` the
+    /// vertical weights above it (`None` on the first row).
+    fn rhs_row(&self, c: usize, y: usize, wt: &RowWeights, wy_up: Option<&[f32]>, out: &mut [f32]) {
         let w = self.w;
         let (ib, gx, gy) = (
             self.row(self.colour, c, y),
@@ -1084,7 +1081,7 @@ impl<'a> Planes<'a> {
             self.row(self.dy, c, y),
         );
         for i in 0..w {
-            out[i] = alpha2 * wt.data[i] * ib[i] - wt.x[i] * gx[i] - wt.y[i] * gy[i];
+            out[i] = wt.data[i] * ib[i] - wt.x[i] * gx[i] - wt.y[i] * gy[i];
         }
         for i in 1..w {
             out[i] += wt.x[i - 1] * gx[i - 1];
@@ -1192,8 +1189,7 @@ impl Reconstructor for PoissonL1 {
             if let (Some(Preconditioner::Multigrid), Some(mg)) =
                 (self.cfg.preconditioner(), self.multigrid.as_mut())
             {
-                let alpha2 = self.cfg.alpha * self.cfg.alpha;
-                mg.set_operator(alpha2, &self.wd, &self.wx, &self.wy);
+                mg.set_operator(&self.op);
             }
             // (step + f) / steps: exact at step boundaries, so progress is monotone.
             let at = |f: f64| progress.update((f64::from(step) + f) / f64::from(steps));
@@ -1353,9 +1349,10 @@ mod tests {
             );
         };
         for p in 0..n {
-            close(f64::from(solve.wd[p]), wd[p], wd[p], "w_d");
-            close(f64::from(solve.wx[p]), wx[p], wx[p], "w_x");
-            close(f64::from(solve.wy[p]), wy[p], wy[p], "w_y");
+            let data = alpha * alpha * wd[p];
+            close(f64::from(solve.op.data[p]), data, data, "alpha^2 w_d");
+            close(f64::from(solve.op.ex[p]), wx[p], wx[p], "w_x");
+            close(f64::from(solve.op.ey[p]), wy[p], wy[p], "w_y");
         }
         for c in 0..3 {
             // b and A x per pixel, edge by edge.
