@@ -6,7 +6,7 @@
 //! `(A u)(p) = data(p) u(p) + sum over the grid edges (p, q) of e(p, q) (u(p) - u(q))`,
 //! with one weight per horizontal edge (`ex`, zero in the last column) and per vertical edge
 //! (`ey`, zero in the last row). The fine level is the IRLS system (`data = alpha^2 w_d`,
-//! `ex = w_x`, `ey = w_y`).
+//! `ex = w_x`, `ey = w_y`), read where the solve keeps it.
 //!
 //! Coarsening aggregates 2 x 2 blocks with piecewise-constant interpolation `P`. The Galerkin
 //! product `P^T A P` is then again of that form, exactly: a coarse cell's `data` is the sum of

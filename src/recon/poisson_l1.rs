@@ -587,8 +587,9 @@ impl PoissonL1 {
         self.cfg = config;
     }
 
-    /// Unit weights (step 0), with the rows that do not exist (last column of `x`, last row
-    /// of `y`) at weight 0 so that every later pass can ignore the boundary.
+    /// Unit weights (step 0; the diagonal is then `alpha^2`), with the rows that do not exist
+    /// (last column of `x`, last row of `y`) at weight 0 so that every later pass can ignore
+    /// the boundary.
     fn reset_weights(&mut self) {
         let Dims { w, h } = self.dims;
         for v in [&mut self.op.ex, &mut self.op.ey, &mut self.scale] {
