@@ -652,7 +652,6 @@ impl PoissonL1 {
                 };
                 for (c, r) in r.iter_mut().enumerate() {
                     let r = &mut r[o..o + w];
-                    b.resize(w, 0.0);
                     planes.rhs_row(c, y, &row_weights, wy_up, b);
                     let x = |y: usize| planes.row(planes.x, c, y);
                     let above = wy_up.map(|wy_up| (x(y - 1), wy_up));
@@ -679,7 +678,7 @@ impl PoissonL1 {
                     .zip(r2.par_chunks_mut(len)),
             )
             .enumerate()
-            .map_init(|| (vec![0.0; w], Vec::new()), band)
+            .map_init(|| (vec![0.0; w], vec![0.0; w]), band)
             .collect();
         // Bands in order: the same sums for any number of threads.
         let total = |i: usize| sums.iter().map(|s| s[i]).sum::<f64>();
