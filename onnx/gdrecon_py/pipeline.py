@@ -30,7 +30,7 @@ import os
 
 import numpy as np
 
-from . import runtime
+from . import output_layer, runtime
 from .mulaw import C, C_inv, S  # the float32 numpy mu-law (mu = 16)
 
 FEAT_CLAMP = 1e5
@@ -229,8 +229,12 @@ def ort_runner(path_or_session):
     if isinstance(path_or_session, (str, os.PathLike)):
         sess = runtime.session(str(path_or_session))
 
+    layer = output_layer.read(sess.get_modelmeta().custom_metadata_map)
+
     def run(data, grad):
-        return sess.run(["output"], {"data": data, "grad": grad})[0]
+        if layer is None:
+            return sess.run(["output"], {"data": data, "grad": grad})[0]
+        return output_layer.apply(layer, sess.run([output_layer.OUTPUT], {"data": data, "grad": grad})[0])
     shape = sess.get_inputs()[0].shape
     run.data_channels = shape[1] if isinstance(shape[1], int) else None
     return run

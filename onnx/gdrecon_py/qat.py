@@ -57,6 +57,7 @@ import torch.nn.functional as F
 
 from . import ONNX_DIR
 from . import gradnet as gn
+from . import output_layer
 
 QMIN_W, QMAX_W = -127, 127      # ONNX Runtime's symmetric int8 weight range
 QMIN_A, QMAX_A = 0, 255         # uint8 activations
@@ -74,6 +75,18 @@ ACT_NAMES = (
        "/Concat_3_output_0"]
     + [f"/u3/Relu{s}_output_0" for s in ("", "_1", "_2", "_3")]       # phases 00, 01, 10, 11
     + ["/u3/Concat_output_0"])
+
+
+# Each sub-pixel layer's crop is quantised as its shuffle's input (`quantize.py`,
+# `share_shuffle_quantization`): {crop: shuffle input}.
+SHARED = {"/u1/u1.0/Slice_output_0": "/u1/u1.0/Relu_output_0",
+          "/u2/u2.0/Slice_output_0": "/u2/u2.0/Relu_output_0"}
+
+
+def deployed(ranges):
+    """`ranges` as the deployed graph quantises: each crop with its shuffle input's range (the
+    crop's own quantisation is then the identity)."""
+    return {k: ranges[SHARED.get(k, k)] for k in ranges}
 
 
 # ------------------------------------------------------------------------------------------
@@ -148,6 +161,11 @@ def net_from_int8(path):
             b = named[k].reshape(-1, 4)
             named[k] = b.mean(1, keepdim=True).expand_as(b).reshape(-1).clone()
     meta = {p.key: p.value for p in m.metadata_props}
+    layer = output_layer.read(meta)
+    if layer is not None:
+        # the output convolution travels in the metadata (`output_layer.py`), in its 3 x 3 form
+        named["out.conv.weight"] = torch.from_numpy(output_layer.phase_form(layer["weight"]))
+        named["out.conv.bias"] = torch.full((4,), float(layer["bias"]))
     sd = unswap_state_dict(named, meta.get("deconv", "convtranspose"), int(meta.get("data_channels", "8")))
     net = gn.GradNet()
     net.load_state_dict(sd)
@@ -191,6 +209,7 @@ class QATGradNet(nn.Module):
         super().__init__()
         self.net = net
         self.quant = True
+        ranges = deployed(ranges)
         s = torch.tensor([ranges[k][0] for k in ACT_NAMES], dtype=torch.float32)
         z = torch.tensor([ranges[k][1] for k in ACT_NAMES], dtype=torch.int32)
         self.register_buffer("scales", s)
@@ -441,7 +460,7 @@ def quantize_ckpt(args):
     net.eval()
     with open(args.ranges) as f:
         rj = json.load(f)
-    ranges = {k: tuple(v) for k, v in rj["ranges"].items()}
+    ranges = deployed({k: tuple(v) for k, v in rj["ranges"].items()})
     overrides = {k: [{"scale": np.array(s, np.float32), "zero_point": np.array(z, np.uint8)}]
                  for k, (s, z) in ranges.items()}
     files = qz.calibration_files(args.data, args.frames)

@@ -23,6 +23,10 @@ What it does (defaults; docs/gradnet.md, "Reduced precision", has the measuremen
 - `--exclude` names nodes kept in fp32: by default the first convolution of each branch (`/d1`,
   `/g1`: 8 and 2 input channels) and the output convolution (`/out`), 1.7 of 119.6 GMAC; with
   them in int8 the validation relMSE rose 3.75 % instead of 0.77 % (`--exclude ''`: none).
+  The output convolution, when kept in fp32, leaves the graph (`output_layer.py`): the graph
+  ends at its quantised input and the caller applies it.
+- each sub-pixel layer's shuffle and crop share their input's quantisation
+  (`share_shuffle_quantization`), so that ONNX Runtime runs them on uint8.
 - Percentile since the GPU-trained model (nineteenth session): its cleaner output left MinMax's
   int8 at +5 / +15 / +25 % relMSE over fp32 at 4 / 16 / 64 spp on validation, Percentile at
   +2 / +6 / +13 % (docs/gradnet.md, "Reduced precision"). Entropy, 48 bundles, the decoder or
@@ -42,6 +46,7 @@ import numpy as np
 import onnx
 
 from . import ONNX_DIR
+from . import output_layer
 from . import pipeline as pl
 
 DEFAULT_DATA = os.path.expanduser("~/.cache/gdrecon/data/train2")
@@ -84,10 +89,12 @@ def calibration_inputs(files, use_features):
 
 
 def quantize(model, out, feeds, activation="u8", fmt="qdq", exclude=(), method="minmax",
-             per_channel=True, reduce_range=False, overrides=None):
+             per_channel=True, reduce_range=False, overrides=None, split_output=True):
     """Static quantisation of `model` to `out` with `feeds` as calibration data. `overrides`:
     {tensor name: [{"scale": float32, "zero_point": uint8}]}, ranges that calibration does not
-    set (ONNX Runtime's TensorQuantOverrides; `qat.py` passes the ranges it tuned for)."""
+    set (ONNX Runtime's TensorQuantOverrides; `qat.py` passes the ranges it tuned for).
+    `split_output`: a GradNet output convolution kept in fp32 leaves the graph
+    (`output_layer.split`)."""
     from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat,
                                           QuantType, quantize_static)
 
@@ -122,8 +129,55 @@ def quantize(model, out, feeds, activation="u8", fmt="qdq", exclude=(), method="
     for k in sorted(props):
         m.metadata_props.add(key=k, value=props[k])
     m.ir_version = min(m.ir_version, src_m.ir_version)
+    if fmt == "qdq":
+        share_shuffle_quantization(m)
+        if split_output and output_layer.CONV in exclude and \
+                any(n.name == output_layer.CONV for n in m.graph.node):
+            output_layer.split(m)
     onnx.save(m, out)
     return m
+
+
+def shuffle_pairs(m):
+    """[(crop output, shuffle input)]: the decoder's sub-pixel layers (`export.py`), each a
+    DepthToSpace whose output only a Slice reads, named by the tensors the QDQ graph quantises
+    (the Slice's output and the DepthToSpace's input, a ReLU's output)."""
+    by_output = {o: n for n in m.graph.node for o in n.output}
+    pairs = []
+    for n in m.graph.node:
+        if n.op_type != "Slice":
+            continue
+        shuffle = by_output.get(n.input[0])
+        if shuffle is None or shuffle.op_type != "DepthToSpace":
+            continue
+        src = by_output.get(shuffle.input[0])
+        if src is not None and src.op_type == "DequantizeLinear":
+            src = by_output.get(src.input[0])
+            if src is not None and src.op_type == "QuantizeLinear":
+                pairs.append((n.output[0], src.input[0]))
+    return pairs
+
+
+def share_shuffle_quantization(m):
+    """Gives each sub-pixel layer's crop (Slice) the quantisation of its shuffle's input, so
+    that ONNX Runtime drops the DequantizeLinear / QuantizeLinear pair around the shuffle and the
+    crop and runs both on the uint8 tensor: 11 % of the int8 GradNet graph's time at 1280 x 720
+    (docs/gradnet.md, "Reduced precision"). Both only move values, so the tensor's range is its
+    input's; with a scale of its own (calibration sees a cropped range) the shuffle ran in fp32
+    between a dequantisation and a requantisation, which was also one more rounding."""
+    qparams = {n.input[0]: (n.input[1], n.input[2]) for n in m.graph.node
+               if n.op_type == "QuantizeLinear"}
+    quantised = {n.output[0]: n.input[0] for n in m.graph.node if n.op_type == "QuantizeLinear"}
+    for crop, src in shuffle_pairs(m):
+        scale, zero = qparams[src]
+        for n in m.graph.node:
+            if (n.op_type == "QuantizeLinear" and n.input[0] == crop) or \
+                    (n.op_type == "DequantizeLinear" and quantised.get(n.input[0]) == crop):
+                n.input[1], n.input[2] = scale, zero
+    used = {i for n in m.graph.node for i in n.input}
+    keep = [i for i in m.graph.initializer if i.name in used]
+    del m.graph.initializer[:]
+    m.graph.initializer.extend(keep)
 
 
 def main(argv=None):

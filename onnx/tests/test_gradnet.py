@@ -391,6 +391,41 @@ def test_int8_model_provenance():
         qz.calibration_files(VAL, 4)
 
 
+def test_int8_output_layer_outside_the_graph(tmp_path):
+    """A QDQ graph whose output convolution was cut off (`output_layer.split`) and applied by
+    `output_layer.apply` gives the uncut graph's output (only the order of fp32 sums differs);
+    each sub-pixel crop carries its shuffle's quantisation; a kernel that is not the phase form of
+    a 3 x 3 one is refused. An untrained model, quantised on random inputs."""
+    from gdrecon_py import output_layer as ol
+    from gdrecon_py import quantize as qz
+    torch.manual_seed(1)
+    net = gn.GradNet().eval()
+    src = str(tmp_path / "m.onnx")
+    ex.export_model(net, src)
+    rng = np.random.default_rng(2)
+    feeds = [{"data": rng.random((1, 8, 32, 48), dtype=np.float32),
+              "grad": rng.random((1, 2, 32, 48), dtype=np.float32) - 0.5} for _ in range(3)]
+    exclude = qz.DEFAULT_EXCLUDE.split(",")
+    cut, whole = str(tmp_path / "cut.onnx"), str(tmp_path / "whole.onnx")
+    m = qz.quantize(src, cut, feeds, exclude=exclude)
+    qz.quantize(src, whole, feeds, exclude=exclude, split_output=False)
+    assert [o.name for o in m.graph.output] == [ol.OUTPUT]
+    assert ol.CONV not in {n.name for n in m.graph.node}
+    qparams = {n.input[0]: n.input[1:] for n in m.graph.node if n.op_type == "QuantizeLinear"}
+    pairs = qz.shuffle_pairs(onnx.load(whole))
+    assert len(pairs) == 2 and all(qparams[crop] == qparams[src] for crop, src in pairs)
+    d = rng.random((2, 8, 40, 56), dtype=np.float32)
+    g = rng.random((2, 2, 40, 56), dtype=np.float32) - 0.5
+    a, b = pl.ort_runner(cut)(d, g), pl.ort_runner(whole)(d, g)
+    assert a.shape == b.shape == (2, 1, 40, 56) and np.abs(a).max() > 0
+    assert float(np.abs(a - b).max()) < 1e-6
+    poly = ol.phase_form(net.out.weight.detach().numpy()[0])
+    assert np.array_equal(ol.phase_form(ol._full_kernel(poly)), poly)
+    poly[1, 0, 0, 0] += 1.0            # a tap the 3 x 3 kernel cannot give
+    with pytest.raises(ValueError):
+        ol._full_kernel(poly)
+
+
 def test_int8_close_to_fp32_on_sample_frame():
     if not os.path.exists(INT8) or not os.path.exists(SAMPLE):
         pytest.skip("int8 model or sample frame absent")

@@ -85,14 +85,14 @@ def test_simulation_is_onnxruntime_int8():
     ranges) is ONNX Runtime's int8 output up to ties and int32 bias rounding: a small fraction of
     the int8 graph's distance from the fp32 network (measured 0.00005 against 0.0030 on a training
     frame)."""
-    from gdrecon_py import runtime
+    from gdrecon_py import pipeline as pl
     sim = qat.QATGradNet(qat.net_from_int8(INT8), qat.ranges_from_int8(INT8)).eval()
     fp32 = net_from_onnx(FP32)
-    s8 = runtime.session(INT8)
+    s8 = pl.ort_runner(INT8)
     d8, d32 = [], []
     for seed in range(3):
         d, g = inputs(seed)
-        o8 = s8.run(["output"], {"data": d.numpy(), "grad": g.numpy()})[0]
+        o8 = s8(d.numpy(), g.numpy())
         with torch.no_grad():
             os_ = sim(d, g).numpy()
             of = fp32(d, g).numpy()

@@ -22,6 +22,7 @@ pub(crate) mod tiles;
 
 #[cfg(feature = "gradnet")]
 pub(crate) mod net;
+pub(crate) mod output_layer;
 #[cfg(test)]
 mod parity;
 #[cfg(feature = "gradnet")]
@@ -35,8 +36,8 @@ pub use model::ModelVariant;
 /// the training split.
 ///
 /// GradNet's feature model runs fp32 by default: its int8 graph (`onnx/gradnet_int8.onnx`,
-/// quantisation-aware fine-tuned, `docs/gradnet.md`, "Reduced precision") is about 2.5x faster
-/// on a CPU with AVX-512 VNNI but raises the relMSE by 5.8 % on the validation and 7.0 % on the
+/// quantisation-aware fine-tuned, `docs/gradnet.md`, "Reduced precision") is about 2.6x faster
+/// on a CPU with AVX-512 VNNI but raises the relMSE by 5.9 % on the validation and 6.9 % on the
 /// test split (geometric means; 1.57x on the worst frame), over the 2 % bar it met with the
 /// CPU-trained model. Frames without features always run the fp32 no-feature model. The
 /// combiner's head runs int8 by default: `onnx/combiner_int8.onnx` (`docs/benchmarks.md`,
@@ -182,7 +183,7 @@ impl Params for GradNetConfig {
             GradNetPrecision::NAMES,
             "Arithmetic of the feature model: fp32 (onnx/gradnet.onnx) or int8 \
              (onnx/gradnet_int8.onnx, quantisation-aware fine-tuned on the training split; about \
-             2.5x faster with AVX-512 VNNI, relMSE +5.8 % on validation, +7.0 % on test); frames \
+             2.6x faster with AVX-512 VNNI, relMSE +5.9 % on validation, +6.9 % on test); frames \
              without features run the fp32 no-feature model either way; ignored when a model \
              file is given",
             |c| c.precision.index(),

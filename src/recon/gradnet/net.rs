@@ -7,7 +7,8 @@
 //! intra-op threads = the context's thread count and no spinning (a spinning pool steals the
 //! cores from the rayon stages before and after); one inter-op thread (the graph is a chain);
 //! the CPU arena on with memory patterns (fastest; safe because every tile of a plan has the
-//! same shape, so the arena does not keep growing).
+//! same shape, so the arena does not keep growing). A graph that ends before its output
+//! convolution (the int8 graph: output `phases`) has it applied here ([`OutputLayer`]).
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
@@ -19,8 +20,12 @@ use ort::session::{RunOptions, Session, SessionOutputs};
 use ort::value::TensorRef;
 
 use super::model::ModelBytes;
+use super::output_layer::OutputLayer;
 use crate::error::{Error, Result};
 use crate::progress::Progress;
+
+/// The int8 graph's output when its output convolution runs here ([`OutputLayer`]).
+const PHASES: &str = "phases";
 
 /// How often a run's watcher looks at the cancel flag.
 const POLL: Duration = Duration::from_millis(5);
@@ -30,6 +35,8 @@ pub(crate) struct Net {
     session: Session,
     /// Channels of the `data` input: 8 (colour + features) or 1 (colour only).
     pub data_channels: usize,
+    /// The output convolution, when the graph ends before it (the int8 graph's `phases`).
+    layer: Option<OutputLayer>,
     /// Where the model came from (for reports).
     pub origin: String,
 }
@@ -158,7 +165,21 @@ impl Net {
         let input = |name: &str| input_shape(&session, name);
         let names = || input_names(&session);
         let (data, grad) = (input("data"), input("grad"));
-        let has_output = session.outputs().iter().any(|o| o.name() == "output");
+        let has = |name: &str| session.outputs().iter().any(|o| o.name() == name);
+        let layer = match session.metadata() {
+            Ok(meta) => OutputLayer::from_metadata(|key| meta.custom(key), &model.origin)?,
+            Err(e) => {
+                return Err(Error::Model(format!(
+                    "{}: cannot read the graph's metadata: {e}",
+                    model.origin
+                )))
+            }
+        };
+        let has_output = if layer.is_some() {
+            has(PHASES)
+        } else {
+            has("output")
+        };
         let data_channels = match (&data, &grad) {
             (Some(d), Some(g))
                 if d.len() == 4 && g.len() == 4 && g[1] == 2 && matches!(d[1], 1 | 8) && has_output =>
@@ -168,7 +189,7 @@ impl Net {
             _ => {
                 return Err(Error::Model(format!(
                     "{}: not a GradNet graph: expected inputs data (N x 8 or 1 x H x W) and grad \
-                     (N x 2 x H x W) and output `output`, found inputs [{}] with data {:?}, grad {:?}",
+                     (N x 2 x H x W) and output `output` (or `phases` and its output layer), found inputs [{}] with data {:?}, grad {:?}",
                     model.origin,
                     names(),
                     data,
@@ -179,6 +200,7 @@ impl Net {
         Ok(Net {
             session,
             data_channels,
+            layer,
             origin: model.origin.clone(),
         })
     }
@@ -195,14 +217,37 @@ impl Net {
         let fail = |e: ort::Error| Error::Runtime(format!("GradNet inference failed: {e}"));
         let data = TensorRef::from_array_view(data).map_err(fail)?;
         let grad = TensorRef::from_array_view(grad).map_err(fail)?;
-        let session = &mut self.session;
+        let (session, layer) = (&mut self.session, &self.layer);
         cancellable(stop, |options| {
             let outputs = session
                 .run_with_options(ort::inputs!["data" => data, "grad" => grad], options)
                 .map_err(fail)?;
-            consume(output(&outputs, "output", "GradNet inference", |d| {
-                (d[2], d[3])
-            })?);
+            let Some(layer) = layer else {
+                consume(output(&outputs, "output", "GradNet inference", |d| {
+                    (d[2], d[3])
+                })?);
+                return Ok(());
+            };
+            let phases = outputs
+                .get(PHASES)
+                .ok_or_else(|| {
+                    Error::Runtime(format!(
+                        "GradNet inference: the graph returned no `{PHASES}`"
+                    ))
+                })?
+                .try_extract_array::<u8>()
+                .map_err(|e| Error::Runtime(format!("GradNet inference failed: {e}")))?;
+            let dims = phases.shape().to_vec();
+            let shape = match dims[..] {
+                [1, c, h, w] => Ok((c, h, w)),
+                _ => Err(Error::Runtime(format!(
+                    "GradNet inference: unexpected `{PHASES}` shape {dims:?}"
+                ))),
+            }?;
+            let phases = phases.into_shape_with_order(shape).map_err(|e| {
+                Error::Runtime(format!("GradNet inference: `{PHASES}` {dims:?}: {e}"))
+            })?;
+            consume(layer.apply(phases)?.view());
             Ok(())
         })
     }

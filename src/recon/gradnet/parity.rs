@@ -3,7 +3,8 @@
 //! Stated tolerances: pre-processing 1e-6 absolute (same f32 formulas), bias correction 1e-5
 //! relative (numpy blurs in f64, we in f32), network 1e-4 absolute against torch; the int8
 //! graph 1e-5 absolute against onnxruntime in Python (the same library and kernels: integer
-//! sums are exact, so only the fp32 first and last layers can round differently).
+//! sums are exact, so only the fp32 first layers, and the output layer, native here and numpy's
+//! there (`output_layer.rs`), can round differently).
 
 use std::path::PathBuf;
 
