@@ -78,14 +78,15 @@ def split(m):
         raise ValueError(f"{CONV}: weights {poly.shape} are not the phase form of a 3 x 3 kernel")
     w = _full_kernel(poly)
     scale, zero = inits[q.input[1]], inits[q.input[2]]
-    # everything that reads the phases, transitively, goes
+    # everything that reads the phases, transitively, goes (by index: the protobuf wrappers'
+    # identities are not stable)
     dead, live = set(), {q.output[0]}
-    for n in g.node:                      # the graph is topologically sorted
+    for k, n in enumerate(g.node):        # the graph is topologically sorted
         if any(i in live for i in n.input):
-            dead.add(id(n))
+            dead.add(k)
             live.update(n.output)
     q.output[0] = OUTPUT
-    keep = [n for n in g.node if id(n) not in dead]
+    keep = [n for k, n in enumerate(g.node) if k not in dead]
     del g.node[:]
     g.node.extend(keep)
     del g.output[:]
