@@ -649,16 +649,21 @@ type NlmFn = fn(
     &Progress,
 ) -> Result<Vec<(Image, Vec<f32>)>>;
 
-/// The RDFC pre-denoised guide of `colour` (variance of the mean `var`); incomplete when
-/// `stop` is cancelled (the caller checks it).
+/// The window radius of the release's candidate filters: 21 x 21.
+pub(crate) const RADIUS: usize = 10;
+
+/// The RDFC pre-denoised guide of `colour` (variance of the mean `var`), its candidate
+/// filters over windows of `radius` ([`RADIUS`] in the release); incomplete when `stop` is
+/// cancelled (the caller checks it).
 pub(crate) fn rdfc(
     colour: &Image,
     var: &Image,
     albedo: Option<&Image>,
     normal: Option<&Image>,
+    radius: usize,
     stop: &Progress,
 ) -> Result<Image> {
-    rdfc_with(colour, var, albedo, normal, nlm_candidates, stop)
+    rdfc_with(colour, var, albedo, normal, radius, nlm_candidates, stop)
 }
 
 fn rdfc_with(
@@ -666,6 +671,7 @@ fn rdfc_with(
     var: &Image,
     albedo: Option<&Image>,
     normal: Option<&Image>,
+    radius: usize,
     nlm_candidates: NlmFn,
     stop: &Progress,
 ) -> Result<Image> {
@@ -676,7 +682,7 @@ fn rdfc_with(
         .chain(normal)
         .map(Feature::new)
         .collect::<Result<_>>()?;
-    let filtered = nlm_candidates(colour, var, &features, colour, 10, &CANDIDATES, stop)?;
+    let filtered = nlm_candidates(colour, var, &features, colour, radius, &CANDIDATES, stop)?;
     if stop.stopped() {
         return colour.try_clone();
     }

@@ -271,28 +271,40 @@ fn tiled_nlm_matches_the_straightforward_one_on_tiny_images() {
     }
 }
 
+/// At the release's window and a smaller one (the `rdfc_radius` parameter), which changes the
+/// guide.
 #[test]
 fn rdfc_matches_the_straightforward_one() {
     let (colour, var, albedo, normal) = synthetic(90, 50);
-    let fast = rdfc(
-        &colour,
-        &var,
-        Some(&albedo),
-        Some(&normal),
-        &Progress::none(),
-    )
-    .unwrap();
-    let slow = rdfc_with(
-        &colour,
-        &var,
-        Some(&albedo),
-        Some(&normal),
-        naive_nlm_candidates,
-        &Progress::none(),
-    )
-    .unwrap();
-    let d = max_rel(&fast, &slow, 1e-3);
-    assert!(d <= 1e-4, "{d:e}");
+    let mut guides = Vec::new();
+    for radius in [RADIUS, 4] {
+        let fast = rdfc(
+            &colour,
+            &var,
+            Some(&albedo),
+            Some(&normal),
+            radius,
+            &Progress::none(),
+        )
+        .unwrap();
+        let slow = rdfc_with(
+            &colour,
+            &var,
+            Some(&albedo),
+            Some(&normal),
+            radius,
+            naive_nlm_candidates,
+            &Progress::none(),
+        )
+        .unwrap();
+        let d = max_rel(&fast, &slow, 1e-3);
+        assert!(d <= 1e-4, "radius {radius}: {d:e}");
+        guides.push(fast);
+    }
+    assert!(
+        max_rel(&guides[0], &guides[1], 1e-3) > 1e-3,
+        "the radius is used"
+    );
 }
 
 /// The bundled sample (and the bundle at `$GDRECON_RDFC_FRAME`, if set): the guide and the
@@ -311,7 +323,7 @@ fn rdfc_on_frames_matches_the_straightforward_one() {
         let var = smooth_variance(frame.variance().unwrap(), 2).unwrap();
         let (colour, albedo, normal) = (frame.color(), frame.albedo(), frame.normal());
         let t = std::time::Instant::now();
-        let fast = rdfc(colour, &var, albedo, normal, &Progress::none()).unwrap();
+        let fast = rdfc(colour, &var, albedo, normal, RADIUS, &Progress::none()).unwrap();
         let t_fast = t.elapsed();
         let t = std::time::Instant::now();
         let slow = rdfc_with(
@@ -319,6 +331,7 @@ fn rdfc_on_frames_matches_the_straightforward_one() {
             &var,
             albedo,
             normal,
+            RADIUS,
             naive_nlm_candidates,
             &Progress::none(),
         )
@@ -372,7 +385,15 @@ fn zero_variance_returns_the_input() {
     let img = Image::from_fn(3, w, h, |(c, x, y)| {
         ((x * 3 + y * 5 + c) % 7) as f32 * 0.1 + 0.05
     });
-    let out = rdfc(&img, &Image::zeros(3, w, h), None, None, &Progress::none()).unwrap();
+    let out = rdfc(
+        &img,
+        &Image::zeros(3, w, h),
+        None,
+        None,
+        RADIUS,
+        &Progress::none(),
+    )
+    .unwrap();
     let d = out.max_abs_diff(&img);
     assert!(d < 1e-5, "{d}");
 }
@@ -389,7 +410,7 @@ fn noise_is_reduced_on_a_flat_image() {
     };
     let img = Image::from_fn(3, w, h, |_| 0.5 + rnd());
     let var = Image::from_fn(3, w, h, |_| 0.2 * 0.2 / 12.0);
-    let out = rdfc(&img, &var, None, None, &Progress::none()).unwrap();
+    let out = rdfc(&img, &var, None, None, RADIUS, &Progress::none()).unwrap();
     let mse = |a: &Image| {
         a.as_slice()
             .iter()
