@@ -7,7 +7,9 @@ the validation and test splits (docs/gradnet.md, "Reduced precision").
 
 --time: one colour channel (1 x Cd x H x W) through each graph, the sessions of `runtime.session`
 (the Rust path's settings, `--threads` intra-op threads), one warm-up run each, then `--rounds`
-rounds running each graph once, interleaved; medians.
+rounds running each graph once, interleaved; medians. The graph alone: a graph that ends before
+its output convolution (the int8 graph, `output_layer.py`) is timed without it (about 10 ms of
+a 1280 x 720 channel in the library; `gdrecon bench` times the whole method).
 --splits: every bundle of each split through the whole reference pipeline (`pipeline.reconstruct`:
 features, mu-law, padding, the graph, inverse mu-law, emitters, bias correction) with each graph;
 relMSE against the bundle's reference (`metrics.relmse`), per frame, geometric means per spp and

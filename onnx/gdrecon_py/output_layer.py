@@ -69,10 +69,12 @@ def split(m):
     conv = next((n for n in g.node if n.name == CONV), None)
     if conv is None:
         raise ValueError(f"no {CONV}: not export.py's GradNet graph")
-    dq = by_output[conv.input[0]]
-    q = by_output.get(dq.input[0])
-    if dq.op_type != "DequantizeLinear" or q is None or q.op_type != "QuantizeLinear":
+    dq = by_output.get(conv.input[0])
+    q = by_output.get(dq.input[0]) if dq is not None else None
+    if dq is None or dq.op_type != "DequantizeLinear" or q is None or q.op_type != "QuantizeLinear":
         raise ValueError(f"{CONV}: its input is not a quantised tensor")
+    if len(conv.input) < 3 or conv.input[1] not in inits or conv.input[2] not in inits:
+        raise ValueError(f"{CONV}: its weights and bias are not fp32 initializers")
     poly, bias = inits[conv.input[1]], inits[conv.input[2]]
     if poly.shape[0] != 4 or poly.shape[2:] != (3, 3) or bias.shape != (4,) or len(set(bias.tolist())) != 1:
         raise ValueError(f"{CONV}: weights {poly.shape} are not the phase form of a 3 x 3 kernel")
@@ -85,6 +87,12 @@ def split(m):
         if any(i in live for i in n.input):
             dead.add(k)
             live.update(n.output)
+    # `apply` stands for exactly what goes: the dequantisation, the convolution, the shuffle of
+    # its four phases and the ReLU, ending at the graph's one output
+    gone = sorted(g.node[k].op_type for k in dead)
+    if gone != sorted(["DequantizeLinear", "Conv", "DepthToSpace", "Relu"]) or \
+            [o.name for o in g.output] != [g.node[max(dead)].output[0]]:
+        raise ValueError(f"after {CONV}: {gone}, not the output layer `apply` computes")
     q.output[0] = OUTPUT
     keep = [n for k, n in enumerate(g.node) if k not in dead]
     del g.node[:]
@@ -95,6 +103,9 @@ def split(m):
     kept = [i for i in g.initializer if i.name in used]
     del g.initializer[:]
     g.initializer.extend(kept)
+    shapes = [v for v in g.value_info if v.name not in live]
+    del g.value_info[:]
+    g.value_info.extend(shapes)
     props = {p.key: p.value for p in m.metadata_props}
     props.update({PREFIX + "weight": _floats(w), PREFIX + "bias": _floats(bias[:1]),
                   PREFIX + "scale": _floats(scale.reshape(1)),
@@ -104,6 +115,17 @@ def split(m):
     for k in sorted(props):
         m.metadata_props.add(key=k, value=props[k])
     return m
+
+
+def manifest_outputs(m):
+    """The graph's outputs as its models.json entry records them."""
+    meta = {p.key: p.value for p in m.metadata_props}
+    if PREFIX + "channels" not in meta:
+        return {"output": ["N", 1, "H", "W"]}
+    ch = int(meta[PREFIX + "channels"])
+    return {OUTPUT: ["N", 4 * ch, "H/2", "W/2"],
+            "output_layer": f"uint8 phases; the 3 x 3 convolution {ch} -> 1 and ReLU after them are "
+                            f"in the metadata ({PREFIX}*) and applied by the caller"}
 
 
 def read(meta):

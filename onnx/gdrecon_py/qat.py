@@ -504,7 +504,7 @@ def quantize_ckpt(args):
     entry = {"file": base, "sha256": digest, "bytes": os.path.getsize(args.out), "precision": "int8",
              "ir_version": m.ir_version, "opset": m.opset_import[0].version,
              "inputs": {"data": ["N", 8, "H", "W"], "grad": ["N", 2, "H", "W"]},
-             "outputs": {"output": ["N", 1, "H", "W"]},
+             "outputs": output_layer.manifest_outputs(m),
              "source": {"file": "gradnet.onnx", "sha256": teacher_sha,
                         "fine_tuned": "quantisation-aware (gdrecon_py.qat), distilled from the fp32 graph",
                         "qat_steps": ck.get("step"), "qat_seconds": round(ck.get("elapsed", 0.0)),

@@ -23,8 +23,8 @@ What it does (defaults; docs/gradnet.md, "Reduced precision", has the measuremen
 - `--exclude` names nodes kept in fp32: by default the first convolution of each branch (`/d1`,
   `/g1`: 8 and 2 input channels) and the output convolution (`/out`), 1.7 of 119.6 GMAC; with
   them in int8 the validation relMSE rose 3.75 % instead of 0.77 % (`--exclude ''`: none).
-  The output convolution, when kept in fp32, leaves the graph (`output_layer.py`): the graph
-  ends at its quantised input and the caller applies it.
+  In the QDQ format the output convolution, when kept in fp32, leaves the graph
+  (`output_layer.py`): the graph ends at its quantised input and the caller applies it.
 - each sub-pixel layer's shuffle and crop share their input's quantisation
   (`share_shuffle_quantization`), so that ONNX Runtime runs them on uint8.
 - Percentile since the GPU-trained model (nineteenth session): its cleaner output left MinMax's
@@ -143,12 +143,16 @@ def shuffle_pairs(m):
     DepthToSpace whose output only a Slice reads, named by the tensors the QDQ graph quantises
     (the Slice's output and the DepthToSpace's input, a ReLU's output)."""
     by_output = {o: n for n in m.graph.node for o in n.output}
+    readers = {}
+    for n in m.graph.node:
+        for i in n.input:
+            readers[i] = readers.get(i, 0) + 1
     pairs = []
     for n in m.graph.node:
         if n.op_type != "Slice":
             continue
         shuffle = by_output.get(n.input[0])
-        if shuffle is None or shuffle.op_type != "DepthToSpace":
+        if shuffle is None or shuffle.op_type != "DepthToSpace" or readers[shuffle.output[0]] != 1:
             continue
         src = by_output.get(shuffle.input[0])
         if src is not None and src.op_type == "DequantizeLinear":
@@ -159,7 +163,8 @@ def shuffle_pairs(m):
 
 
 def share_shuffle_quantization(m):
-    """Gives each sub-pixel layer's crop (Slice) the quantisation of its shuffle's input, so
+    """Gives each sub-pixel layer's crop (Slice, the only reader of the shuffle in
+    `export.py`'s graph) the quantisation of its shuffle's input, so
     that ONNX Runtime drops the DequantizeLinear / QuantizeLinear pair around the shuffle and the
     crop and runs both on the uint8 tensor: 11 % of the int8 GradNet graph's time at 1280 x 720
     (docs/gradnet.md, "Reduced precision"). Both only move values, so the tensor's range is its
@@ -225,7 +230,7 @@ def main(argv=None):
     entry = {"file": base, "sha256": digest, "bytes": os.path.getsize(args.out),
              "precision": "int8", "ir_version": m.ir_version, "opset": m.opset_import[0].version,
              "inputs": {"data": ["N", dch, "H", "W"], "grad": ["N", 2, "H", "W"]},
-             "outputs": {"output": ["N", 1, "H", "W"]},
+             "outputs": output_layer.manifest_outputs(m),
              "source": {"file": os.path.basename(args.model), "sha256": sha256_file(args.model)},
              "quantization": {"tool": f"onnxruntime.quantization {onnxruntime.__version__}",
                               "format": args.format, "weights": "int8 symmetric per channel",

@@ -25,9 +25,10 @@ pub enum ModelVariant {
     /// `gradnet_nofeat.onnx`: colour only, for frames without feature layers.
     NoFeatures,
     /// `gradnet_int8.onnx`: [`ModelVariant::Full`] quantised to int8 (QDQ: int8 weights per
-    /// output channel, uint8 activations; the first two convolutions and the output
-    /// convolution kept in fp32), calibrated on the training split (`docs/gradnet.md`,
-    /// "Reduced precision").
+    /// output channel, uint8 activations; the first two convolutions kept in fp32, and the
+    /// output convolution too, outside the graph, which ends at its quantised input:
+    /// `output_layer.rs`), calibrated on the training split (`docs/gradnet.md`, "Reduced
+    /// precision").
     FullInt8,
     /// `combiner.onnx`: the combiner's network (`onnx/gdrecon_py/combiner.py`), not a GradNet.
     Combiner,

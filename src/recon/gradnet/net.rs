@@ -13,7 +13,7 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
-use ndarray::{ArrayView2, ArrayView4};
+use ndarray::{Array2, ArrayView2, ArrayView4};
 use ort::ep;
 use ort::session::builder::GraphOptimizationLevel;
 use ort::session::{RunOptions, Session, SessionOutputs};
@@ -37,6 +37,8 @@ pub(crate) struct Net {
     pub data_channels: usize,
     /// The output convolution, when the graph ends before it (the int8 graph's `phases`).
     layer: Option<OutputLayer>,
+    /// Its output, kept between runs (every tile of a plan has one size).
+    full: Array2<f32>,
     /// Where the model came from (for reports).
     pub origin: String,
 }
@@ -154,6 +156,27 @@ pub(crate) fn input_names(session: &Session) -> String {
         .join(", ")
 }
 
+/// A graph whose metadata describes an output layer must return `phases` as uint8 with the
+/// layer's `4 C` channels (where the graph states them): checked when the model is loaded.
+fn check_phases(session: &Session, layer: &OutputLayer, origin: &str) -> Result<()> {
+    let Some(phases) = session.outputs().iter().find(|o| o.name() == PHASES) else {
+        return Err(Error::Model(format!(
+            "{origin}: its metadata describes an output layer but the graph has no `{PHASES}` output"
+        )));
+    };
+    let dtype = phases.dtype();
+    let channels = dtype.tensor_shape().filter(|s| s.len() == 4).map(|s| s[1]);
+    let ok = dtype.tensor_type() == Some(ort::value::TensorElementType::Uint8)
+        && matches!(channels, Some(c) if c < 0 || c as usize == 4 * layer.channels());
+    if !ok {
+        return Err(Error::Model(format!(
+            "{origin}: output `{PHASES}` is {dtype:?}; its output layer reads N x {} x H/2 x W/2 uint8",
+            4 * layer.channels()
+        )));
+    }
+    Ok(())
+}
+
 impl Net {
     /// Builds a session for `model` with `threads` intra-op threads.
     pub fn new(
@@ -175,10 +198,12 @@ impl Net {
                 )))
             }
         };
-        let has_output = if layer.is_some() {
-            has(PHASES)
-        } else {
-            has("output")
+        let has_output = match &layer {
+            None => has("output"),
+            Some(layer) => {
+                check_phases(&session, layer, &model.origin)?;
+                true
+            }
         };
         let data_channels = match (&data, &grad) {
             (Some(d), Some(g))
@@ -202,6 +227,7 @@ impl Net {
             data_channels,
             layer,
             origin: model.origin.clone(),
+            full: Array2::zeros((0, 0)),
         })
     }
 
@@ -215,17 +241,33 @@ impl Net {
         consume: impl FnOnce(ArrayView2<'_, f32>),
     ) -> Result<()> {
         let fail = |e: ort::Error| Error::Runtime(format!("GradNet inference failed: {e}"));
+        let (_, _, h, w) = data.dim();
         let data = TensorRef::from_array_view(data).map_err(fail)?;
         let grad = TensorRef::from_array_view(grad).map_err(fail)?;
-        let (session, layer) = (&mut self.session, &self.layer);
+        let (session, layer, full) = (&mut self.session, &self.layer, &mut self.full);
+        let origin = &self.origin;
+        // A model file's graph may return any shape: one that does not match the input's is
+        // refused here rather than read out of bounds by the caller.
+        let wrong = |what: &str, dims: &[usize]| {
+            Error::Runtime(format!(
+                "GradNet inference ({origin}): output `{what}` has shape {dims:?} for a {h} x {w} input"
+            ))
+        };
         cancellable(stop, |options| {
             let outputs = session
                 .run_with_options(ort::inputs!["data" => data, "grad" => grad], options)
                 .map_err(fail)?;
             let Some(layer) = layer else {
-                consume(output(&outputs, "output", "GradNet inference", |d| {
-                    (d[2], d[3])
-                })?);
+                let y = output(&outputs, "output", "GradNet inference", |d| {
+                    (
+                        d.get(2).copied().unwrap_or(0),
+                        d.get(3).copied().unwrap_or(0),
+                    )
+                })?;
+                if y.dim() != (h, w) {
+                    return Err(wrong("output", y.shape()));
+                }
+                consume(y);
                 return Ok(());
             };
             let phases = outputs
@@ -239,15 +281,14 @@ impl Net {
                 .map_err(|e| Error::Runtime(format!("GradNet inference failed: {e}")))?;
             let dims = phases.shape().to_vec();
             let shape = match dims[..] {
-                [1, c, h, w] => Ok((c, h, w)),
-                _ => Err(Error::Runtime(format!(
-                    "GradNet inference: unexpected `{PHASES}` shape {dims:?}"
-                ))),
+                [1, c, ph, pw] if 2 * ph == h && 2 * pw == w => Ok((c, ph, pw)),
+                _ => Err(wrong(PHASES, &dims)),
             }?;
-            let phases = phases.into_shape_with_order(shape).map_err(|e| {
-                Error::Runtime(format!("GradNet inference: `{PHASES}` {dims:?}: {e}"))
-            })?;
-            consume(layer.apply(phases)?.view());
+            let phases = phases
+                .into_shape_with_order(shape)
+                .map_err(|_| wrong(PHASES, &dims))?;
+            layer.apply(phases, full)?;
+            consume(full.view());
             Ok(())
         })
     }

@@ -59,14 +59,19 @@ impl OutputLayer {
                 _ => Err(bad(what)),
             }
         };
-        let channels = one("channels")? as usize;
+        let channels = get(&format!("{PREFIX}channels"))
+            .and_then(|v| v.trim().parse::<usize>().ok())
+            .filter(|&c| c > 0)
+            .ok_or_else(|| bad("channels"))?;
         let w = floats(&weight, "weight")?;
-        if channels == 0 || w.len() != 9 * channels {
+        if Some(w.len()) != channels.checked_mul(9) {
             return Err(bad("weight"));
         }
-        let zero_point = one("zero_point")?;
+        let zero_point = get(&format!("{PREFIX}zero_point"))
+            .and_then(|v| v.trim().parse::<u8>().ok())
+            .ok_or_else(|| bad("zero_point"))?;
         let scale = one("scale")?;
-        if !(0.0..=255.0).contains(&zero_point) || zero_point.fract() != 0.0 || scale <= 0.0 {
+        if scale <= 0.0 {
             return Err(bad("scale"));
         }
         let weight = w
@@ -77,12 +82,18 @@ impl OutputLayer {
             weight,
             bias: one("bias")?,
             scale,
-            zero_point,
+            zero_point: f32::from(zero_point),
         }))
     }
 
-    /// The layer over one item's phases (`4C x h x w`): the `2h x 2w` output.
-    pub fn apply(&self, phases: ArrayView3<'_, u8>) -> Result<Array2<f32>> {
+    /// Channels of the full-resolution tensor the layer reads (its phases have 4 times as
+    /// many).
+    pub fn channels(&self) -> usize {
+        self.weight.len()
+    }
+
+    /// The layer over one item's phases (`4C x h x w`) into `out`, resized to `2h x 2w`.
+    pub fn apply(&self, phases: ArrayView3<'_, u8>, out: &mut Array2<f32>) -> Result<()> {
         let (c4, h, w) = phases.dim();
         let ch = self.weight.len();
         if c4 != 4 * ch {
@@ -94,8 +105,13 @@ impl OutputLayer {
         let phases = phases.as_standard_layout();
         let q = phases.as_slice().expect("standard layout");
         let plane = |k: usize, row: usize| &q[(k * h + row) * w..][..w];
-        let mut out = Array2::zeros((2 * h, 2 * w));
-        let rows = out.as_slice_mut().expect("new array");
+        if out.dim() != (2 * h, 2 * w) {
+            *out = Array2::zeros((2 * h, 2 * w));
+        }
+        if w == 0 {
+            return Ok(());
+        }
+        let rows = out.as_slice_mut().expect("standard layout");
         rows.par_chunks_mut(2 * w).enumerate().for_each_init(
             || {
                 (
@@ -137,7 +153,7 @@ impl OutputLayer {
                 }
             },
         );
-        Ok(out)
+        Ok(())
     }
 }
 
@@ -201,7 +217,8 @@ mod tests {
         };
         let layer = OutputLayer::from_metadata(meta, "test").unwrap().unwrap();
         let q = Array3::from_shape_fn((4 * ch, h, w), |_| (next() % 256) as u8);
-        let out = layer.apply(q.view()).unwrap();
+        let mut out = Array2::from_elem((1, 1), f32::NAN);
+        layer.apply(q.view(), &mut out).unwrap();
         let v = |c: usize, y: isize, x: isize| -> f64 {
             if y < 0 || x < 0 || y >= 2 * h as isize || x >= 2 * w as isize {
                 return 0.0;
@@ -259,5 +276,35 @@ mod tests {
             _ => Some("1".into()),
         };
         assert!(OutputLayer::from_metadata(nan, "m").is_err());
+        for (key, value, named) in [
+            ("channels", "1e38", "channels"),
+            ("channels", "1.5", "channels"),
+            ("zero_point", "256", "zero_point"),
+            ("scale", "-1", "scale"),
+        ] {
+            let meta = |k: &str| match k.strip_prefix(PREFIX)? {
+                k if k == key => Some(value.to_string()),
+                "weight" => Some(["1"; 9].join(" ")),
+                "channels" => Some("1".into()),
+                _ => Some("1".into()),
+            };
+            let err = OutputLayer::from_metadata(meta, "m")
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains(&format!("output_layer.{named}")),
+                "{key}={value}: {err}"
+            );
+        }
+        // Phases of the wrong channel count are refused, not read out of bounds.
+        let one = |k: &str| match k.strip_prefix(PREFIX)? {
+            "weight" => Some(["1"; 9].join(" ")),
+            _ => Some("1".into()),
+        };
+        let layer = OutputLayer::from_metadata(one, "m").unwrap().unwrap();
+        let mut out = Array2::zeros((0, 0));
+        assert!(layer
+            .apply(Array3::zeros((8, 2, 2)).view(), &mut out)
+            .is_err());
     }
 }
