@@ -30,7 +30,7 @@
 
 use rayon::prelude::*;
 
-use super::ops::{row_sum, Dims};
+use super::ops::{row_sum, Dims, Operator};
 use crate::error::Result;
 use crate::image::try_vec;
 
@@ -82,16 +82,6 @@ impl Correction<'_> {
         let o = c * w * h + (y / 2) * w;
         add_pairs(row, &self.coarse_x[o..o + w]);
     }
-}
-
-/// The operator of a level (see the module comment): `data` on the diagonal, one weight per
-/// horizontal edge (`ex`, 0 in the last column) and per vertical edge (`ey`, 0 in the last
-/// row), row-major planes.
-#[derive(Clone, Default)]
-pub(crate) struct Operator {
-    pub data: Vec<f32>,
-    pub ex: Vec<f32>,
-    pub ey: Vec<f32>,
 }
 
 /// One level's operator and (below the fine level) its vectors.

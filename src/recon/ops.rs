@@ -79,6 +79,28 @@ pub(crate) fn grad_adjoint(gx: &[f32], gy: &[f32], d: Dims, out: &mut [f32]) {
     });
 }
 
+/// An operator `(A u)(p) = data(p) u(p) + sum over the grid edges (p, q) of e(p, q) (u(p) -
+/// u(q))` in row-major planes: `data` on the diagonal, one weight per horizontal edge (`ex`, 0
+/// in the last column) and per vertical edge (`ey`, 0 in the last row). The IRLS system owns
+/// one, the multigrid one per coarse level.
+#[derive(Clone, Default)]
+pub(crate) struct Operator {
+    pub data: Vec<f32>,
+    pub ex: Vec<f32>,
+    pub ey: Vec<f32>,
+}
+
+impl Operator {
+    /// The whole operator as the weights [`apply_weighted`] reads.
+    pub fn weights(&self) -> RowWeights<'_> {
+        RowWeights {
+            data: &self.data,
+            x: &self.ex,
+            y: &self.ey,
+        }
+    }
+}
+
 /// The weighted operator of an IRLS step: `data` its diagonal (`alpha^2` times the weights of
 /// the data rows `alpha (I - I_b)`), `x` and `y` the weights of the gradient rows (last column
 /// of `x`, last row of `y` unused).

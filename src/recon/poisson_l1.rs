@@ -43,8 +43,8 @@ use rayon::prelude::*;
 
 use super::band::{self, banded, NOISE_BAND};
 use super::dct::DctPoisson;
-use super::multigrid::{multigrid_bytes, Multigrid, Operator};
-use super::ops::{apply_weighted, plane_sums, row_sum, weighted_row, Dims, RowWeights};
+use super::multigrid::{multigrid_bytes, Multigrid};
+use super::ops::{apply_weighted, plane_sums, row_sum, weighted_row, Dims, Operator, RowWeights};
 use super::param::{choices, Param, Params, Preset, Range};
 use super::poisson_l2::{ALPHA_RANGE, DEFAULT_ALPHA};
 use super::prior::{prior_memory, DataTerm, OnPrior, DATA_DOC, PRIOR_ALPHA_DOC};
@@ -728,11 +728,7 @@ impl PoissonL1 {
 
     /// `dst = A src` per channel; returns `src . dst`.
     fn apply(&mut self, src: &[f32], dst: &mut [f32]) -> [f64; 3] {
-        let wt = RowWeights {
-            data: &self.op.data,
-            x: &self.op.ex,
-            y: &self.op.ey,
-        };
+        let wt = self.op.weights();
         apply_weighted(
             src,
             &wt,
@@ -745,11 +741,7 @@ impl PoissonL1 {
 
     /// `r = b - A x`, in the same pass as `A x`; returns `r . r` per channel.
     fn residual(&mut self) -> [f64; 3] {
-        let wt = RowWeights {
-            data: &self.op.data,
-            x: &self.op.ex,
-            y: &self.op.ey,
-        };
+        let wt = self.op.weights();
         let Dims { w, h } = self.dims;
         let b = &self.b;
         let finish = |plane: usize, y: usize, row: &mut [f32], _: &[f32]| {

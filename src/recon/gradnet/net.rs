@@ -17,7 +17,7 @@ use ndarray::{Array2, ArrayView2, ArrayView4};
 use ort::ep;
 use ort::session::builder::GraphOptimizationLevel;
 use ort::session::{RunOptions, Session, SessionOutputs};
-use ort::value::TensorRef;
+use ort::value::{PrimitiveTensorElementType, TensorRef};
 
 use super::model::ModelBytes;
 use super::output_layer::OutputLayer;
@@ -119,18 +119,19 @@ pub(crate) fn cancellable<T>(
     result
 }
 
-/// The graph's output tensor `name` in the shape `shape` makes of its dimensions (`(H, W)` for
-/// one GradNet item), or an error naming what is wrong (`what`: whose inference it was).
-pub(crate) fn output<'a, E: ndarray::ShapeArg>(
+/// The graph's output tensor `name` of elements `T` in the shape `shape` makes of its
+/// dimensions (`(H, W)` for one GradNet item), or an error naming what is wrong (`what`: whose
+/// inference it was).
+pub(crate) fn output<'a, T: PrimitiveTensorElementType, E: ndarray::ShapeArg>(
     outputs: &'a SessionOutputs<'_>,
     name: &str,
     what: &str,
     shape: impl FnOnce(&[usize]) -> E,
-) -> Result<ndarray::ArrayView<'a, f32, E::Dim>> {
+) -> Result<ndarray::ArrayView<'a, T, E::Dim>> {
     let out = outputs
         .get(name)
         .ok_or_else(|| Error::Runtime(format!("{what}: the graph returned no `{name}`")))?
-        .try_extract_array::<f32>()
+        .try_extract_array::<T>()
         .map_err(|e| Error::Runtime(format!("{what} failed: {e}")))?;
     let dims = out.shape().to_vec();
     out.into_shape_with_order(shape(&dims))
@@ -188,18 +189,16 @@ impl Net {
         let input = |name: &str| input_shape(&session, name);
         let names = || input_names(&session);
         let (data, grad) = (input("data"), input("grad"));
-        let has = |name: &str| session.outputs().iter().any(|o| o.name() == name);
-        let layer = match session.metadata() {
-            Ok(meta) => OutputLayer::from_metadata(|key| meta.custom(key), &model.origin)?,
-            Err(e) => {
-                return Err(Error::Model(format!(
-                    "{}: cannot read the graph's metadata: {e}",
-                    model.origin
-                )))
-            }
-        };
+        let meta = session.metadata().map_err(|e| {
+            Error::Model(format!(
+                "{}: cannot read the graph's metadata: {e}",
+                model.origin
+            ))
+        })?;
+        let layer = OutputLayer::from_metadata(|key| meta.custom(key), &model.origin)?;
+        drop(meta);
         let has_output = match &layer {
-            None => has("output"),
+            None => session.outputs().iter().any(|o| o.name() == "output"),
             Some(layer) => {
                 check_phases(&session, layer, &model.origin)?;
                 true
@@ -270,23 +269,13 @@ impl Net {
                 consume(y);
                 return Ok(());
             };
-            let phases = outputs
-                .get(PHASES)
-                .ok_or_else(|| {
-                    Error::Runtime(format!(
-                        "GradNet inference: the graph returned no `{PHASES}`"
-                    ))
-                })?
-                .try_extract_array::<u8>()
-                .map_err(|e| Error::Runtime(format!("GradNet inference failed: {e}")))?;
-            let dims = phases.shape().to_vec();
-            let shape = match dims[..] {
-                [1, c, ph, pw] if 2 * ph == h && 2 * pw == w => Ok((c, ph, pw)),
-                _ => Err(wrong(PHASES, &dims)),
-            }?;
-            let phases = phases
-                .into_shape_with_order(shape)
-                .map_err(|_| wrong(PHASES, &dims))?;
+            let phases = output::<u8, _>(&outputs, PHASES, "GradNet inference", |d| match d {
+                &[1, c, ph, pw] => (c, ph, pw),
+                _ => (0, 0, 0),
+            })?;
+            if (2 * phases.dim().1, 2 * phases.dim().2) != (h, w) {
+                return Err(wrong(PHASES, phases.shape()));
+            }
             layer.apply(phases, full)?;
             consume(full.view());
             Ok(())
