@@ -185,6 +185,44 @@ fn another_graph_is_refused_as_not_a_combiner() {
     assert!(err.contains("not a combiner graph"), "{err}");
 }
 
+/// The CLI's `--model` reaches the combiner: the embedded fp32 graph given as a file gives the
+/// embedded fp32 graph's output, and GradNet's graph is refused as not a combiner.
+#[test]
+fn the_cli_runs_a_model_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let bundle = dir.path().join("thin.exr");
+    io::write_bundle(&bundle, &frame("thin_16spp")).unwrap();
+    let reconstruct = |model: &str, out: &Path| {
+        Command::cargo_bin("gdrecon")
+            .unwrap()
+            .args(["reconstruct", "-m", "combiner", "-p", "precision=fp32"])
+            .arg("--model")
+            .arg(root().join(model))
+            .arg("-o")
+            .arg(out)
+            .arg(&bundle)
+            .assert()
+    };
+    let out = dir.path().join("file.exr");
+    let run = reconstruct("onnx/combiner.onnx", &out).success();
+    let text = String::from_utf8_lossy(&run.get_output().stdout).to_string();
+    let model = root().join("onnx/combiner.onnx");
+    assert!(
+        text.contains(&format!("combiner: model {},", model.display())),
+        "{text}"
+    );
+    let from_file = io::read_rgb(&out).unwrap();
+    let want = npy(root().join("tests/fixtures/combiner/thin_16spp.npy"));
+    let worst = worst_relative(&from_file, &want);
+    assert!(worst <= 1e-4, "{worst:e}");
+    let refused = reconstruct("onnx/gradnet_nofeat.onnx", &dir.path().join("no.exr"))
+        .failure()
+        .get_output()
+        .clone();
+    let err = String::from_utf8_lossy(&refused.stderr).to_string();
+    assert!(err.contains("not a combiner graph"), "{err}");
+}
+
 #[test]
 fn the_cli_runs_it_and_names_its_inputs() {
     let dir = tempfile::tempdir().unwrap();

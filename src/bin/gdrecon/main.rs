@@ -96,7 +96,8 @@ pub(crate) struct RuntimeArgs {
     /// next to gdrecon, the project's Python environment).
     #[arg(long)]
     onnxruntime: Option<PathBuf>,
-    /// gradnet: model file instead of the embedded models (checked against its .sha256).
+    /// gradnet, combiner: model file instead of the embedded models (checked against its
+    /// .sha256).
     #[arg(long)]
     model: Option<PathBuf>,
     /// The prior's Open Image Denoise library (libOpenImageDenoise.so.2), the only one tried
@@ -107,12 +108,15 @@ pub(crate) struct RuntimeArgs {
 }
 
 impl RuntimeArgs {
-    /// Points the configuration at the runtime (if it runs a network) and GradNet's model.
+    /// Points the configuration at the runtime (if it runs a network) and its model.
     pub(crate) fn apply(&self, config: &mut MethodConfig) {
         if let Some(runtime) = config.runtime_mut() {
             *runtime = self.onnxruntime.clone();
         }
         if let Some(c) = config.gradnet_mut() {
+            c.model = self.model.clone();
+        }
+        if let MethodConfig::Combiner(c) = config {
             c.model = self.model.clone();
         }
     }

@@ -60,8 +60,8 @@ pub fn split_list(list: &str) -> impl Iterator<Item = &str> {
 }
 
 /// Parses a variant name. `common` are `NAME=VALUE` settings for every variant whose method
-/// has that parameter (the variant's own options override them); `runtime` says where
-/// GradNet's library and model are.
+/// has that parameter (the variant's own options override them); `runtime` says where ONNX
+/// Runtime is and which model file every `gradnet` and `combiner` variant runs.
 pub fn parse(name: &str, common: &[String], runtime: &RuntimeArgs) -> gdrecon::Result<Variant> {
     let mut parts = name.split(':').map(str::trim);
     let method: Method = parts
