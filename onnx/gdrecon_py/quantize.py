@@ -37,6 +37,7 @@ model and its SHA-256, the calibration files and their SHA-256 digest, the optio
 onnxruntime version).
 """
 import argparse
+import collections
 import hashlib
 import json
 import os
@@ -143,10 +144,7 @@ def shuffle_pairs(m):
     DepthToSpace whose output only a Slice reads, named by the tensors the QDQ graph quantises
     (the Slice's output and the DepthToSpace's input, a ReLU's output)."""
     by_output = {o: n for n in m.graph.node for o in n.output}
-    readers = {}
-    for n in m.graph.node:
-        for i in n.input:
-            readers[i] = readers.get(i, 0) + 1
+    readers = collections.Counter(i for n in m.graph.node for i in n.input)
     pairs = []
     for n in m.graph.node:
         if n.op_type != "Slice":

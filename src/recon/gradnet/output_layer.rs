@@ -52,24 +52,24 @@ impl OutputLayer {
                 })
                 .collect()
         };
+        /// A metadata value that is one number of type `T`.
+        fn value<T: std::str::FromStr>(text: Option<String>) -> Option<T> {
+            text?.trim().parse().ok()
+        }
+        let key = |what: &str| get(&format!("{PREFIX}{what}"));
         let one = |what: &str| -> Result<f32> {
-            let text = get(&format!("{PREFIX}{what}")).ok_or_else(|| bad(what))?;
-            match floats(&text, what)?[..] {
-                [v] => Ok(v),
-                _ => Err(bad(what)),
-            }
+            value::<f32>(key(what))
+                .filter(|v| v.is_finite())
+                .ok_or_else(|| bad(what))
         };
-        let channels = get(&format!("{PREFIX}channels"))
-            .and_then(|v| v.trim().parse::<usize>().ok())
+        let channels = value::<usize>(key("channels"))
             .filter(|&c| c > 0)
             .ok_or_else(|| bad("channels"))?;
         let w = floats(&weight, "weight")?;
         if Some(w.len()) != channels.checked_mul(9) {
             return Err(bad("weight"));
         }
-        let zero_point = get(&format!("{PREFIX}zero_point"))
-            .and_then(|v| v.trim().parse::<u8>().ok())
-            .ok_or_else(|| bad("zero_point"))?;
+        let zero_point = value::<u8>(key("zero_point")).ok_or_else(|| bad("zero_point"))?;
         let scale = one("scale")?;
         if scale <= 0.0 {
             return Err(bad("scale"));
@@ -255,53 +255,55 @@ mod tests {
         );
     }
 
+    /// Metadata of a 1-channel layer (weights all 1, every other value 1) with `over` replacing
+    /// values by key.
+    fn metadata<'a>(over: &'a [(&'a str, &'a str)]) -> impl Fn(&str) -> Option<String> + 'a {
+        move |key: &str| {
+            let key = key.strip_prefix(PREFIX)?;
+            match over.iter().find(|(k, _)| *k == key) {
+                Some((_, v)) => Some(v.to_string()),
+                None if key == "weight" => Some(["1"; 9].join(" ")),
+                None => Some("1".into()),
+            }
+        }
+    }
+
     #[test]
     fn malformed_metadata_is_refused_and_absent_metadata_is_none() {
         assert!(OutputLayer::from_metadata(|_| None, "m").unwrap().is_none());
-        let meta = |key: &str| match key.strip_prefix(PREFIX)? {
-            "weight" => Some("1 2 3".into()),
-            "channels" => Some("1".into()),
-            _ => Some("0".into()),
-        };
-        let err = OutputLayer::from_metadata(meta, "m.onnx")
+        let short = metadata(&[
+            ("weight", "1 2 3"),
+            ("bias", "0"),
+            ("scale", "0"),
+            ("zero_point", "0"),
+        ]);
+        let err = OutputLayer::from_metadata(short, "m.onnx")
             .unwrap_err()
             .to_string();
         assert!(
             err.contains("m.onnx") && err.contains("output_layer.weight"),
             "{err}"
         );
-        let nan = |key: &str| match key.strip_prefix(PREFIX)? {
-            "weight" => Some(["NaN"; 9].join(" ")),
-            "channels" => Some("1".into()),
-            _ => Some("1".into()),
-        };
-        assert!(OutputLayer::from_metadata(nan, "m").is_err());
-        for (key, value, named) in [
-            ("channels", "1e38", "channels"),
-            ("channels", "1.5", "channels"),
-            ("zero_point", "256", "zero_point"),
-            ("scale", "-1", "scale"),
+        let nan = ["NaN"; 9].join(" ");
+        assert!(OutputLayer::from_metadata(metadata(&[("weight", &nan)]), "m").is_err());
+        for (key, value) in [
+            ("channels", "1e38"),
+            ("channels", "1.5"),
+            ("zero_point", "256"),
+            ("scale", "-1"),
         ] {
-            let meta = |k: &str| match k.strip_prefix(PREFIX)? {
-                k if k == key => Some(value.to_string()),
-                "weight" => Some(["1"; 9].join(" ")),
-                "channels" => Some("1".into()),
-                _ => Some("1".into()),
-            };
-            let err = OutputLayer::from_metadata(meta, "m")
+            let err = OutputLayer::from_metadata(metadata(&[(key, value)]), "m")
                 .unwrap_err()
                 .to_string();
             assert!(
-                err.contains(&format!("output_layer.{named}")),
+                err.contains(&format!("output_layer.{key}")),
                 "{key}={value}: {err}"
             );
         }
         // Phases of the wrong channel count are refused, not read out of bounds.
-        let one = |k: &str| match k.strip_prefix(PREFIX)? {
-            "weight" => Some(["1"; 9].join(" ")),
-            _ => Some("1".into()),
-        };
-        let layer = OutputLayer::from_metadata(one, "m").unwrap().unwrap();
+        let layer = OutputLayer::from_metadata(metadata(&[]), "m")
+            .unwrap()
+            .unwrap();
         let mut out = Array2::zeros((0, 0));
         assert!(layer
             .apply(Array3::zeros((8, 2, 2)).view(), &mut out)

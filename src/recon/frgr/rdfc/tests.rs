@@ -278,25 +278,19 @@ fn rdfc_matches_the_straightforward_one() {
     let (colour, var, albedo, normal) = synthetic(90, 50);
     let mut guides = Vec::new();
     for radius in [RADIUS, 4] {
-        let fast = rdfc(
-            &colour,
-            &var,
-            Some(&albedo),
-            Some(&normal),
-            radius,
-            &Progress::none(),
-        )
-        .unwrap();
-        let slow = rdfc_with(
-            &colour,
-            &var,
-            Some(&albedo),
-            Some(&normal),
-            radius,
-            naive_nlm_candidates,
-            &Progress::none(),
-        )
-        .unwrap();
+        let run = |nlm: NlmFn| {
+            rdfc_with(
+                &colour,
+                &var,
+                Some(&albedo),
+                Some(&normal),
+                radius,
+                nlm,
+                &Progress::none(),
+            )
+            .unwrap()
+        };
+        let (fast, slow) = (run(nlm_candidates), run(naive_nlm_candidates));
         let d = max_rel(&fast, &slow, 1e-3);
         assert!(d <= 1e-4, "radius {radius}: {d:e}");
         guides.push(fast);
