@@ -39,12 +39,17 @@ STEP_CHANGE = "0.001"
 # candidates of a folder recorded under another rule are all computed again.
 OUTPUT = "non-finite values replaced by the base colour, negative values by 0"
 
+# The IRLS regularisation floor the shipped network was trained on (l1's default; the `prior`
+# preset's is lower since the thirtieth session): src/recon/combiner.rs, `CANDIDATE_REG_FLOOR`.
+REG_FLOOR = "0.01"
+
 CANDIDATES = {
     "prior": ["-m", "prior"],
     "l1prior": ["-m", "l1", "--preset", "prior", "-p", f"step_change={STEP_CHANGE}",
-                "-p", "preconditioner=jacobi"],
+                "-p", "preconditioner=jacobi", "-p", f"reg_floor={REG_FLOOR}"],
     "l1weak": ["-m", "l1", "--preset", "prior", "-p", "prior_alpha=0.5",
-               "-p", f"step_change={STEP_CHANGE}", "-p", "preconditioner=multigrid"],
+               "-p", f"step_change={STEP_CHANGE}", "-p", "preconditioner=multigrid",
+               "-p", f"reg_floor={REG_FLOOR}"],
 }
 
 

@@ -94,6 +94,10 @@ pub const INPUTS: [&str; 9] = [
 /// Data-term weight of the weak candidate (the strong one is l1's `prior` preset's).
 const WEAK_ALPHA: f32 = 0.5;
 
+/// The candidates' IRLS regularisation floor: the one the shipped network was trained on
+/// (`candidates.py`'s `REG_FLOOR`), l1's default, not the `prior` preset's lower one.
+const CANDIDATE_REG_FLOOR: f32 = 1e-2;
+
 /// Default `step_change`: the candidates' IRLS (12 steps, as the network was trained on) stops
 /// once a step at the regularisation's floor moves the image by less than 1e-3 in the error
 /// metric's units. Chosen on validation among 3e-4, 1e-3 and 3e-3 (the largest within 0.5 %
@@ -194,9 +198,13 @@ impl Params for CombinerConfig {
 /// The two L1 candidates' settings: the `prior` preset, and the same with the weak weight,
 /// multigrid-preconditioned (a weight this weak leaves the system too poorly conditioned for
 /// the preset's Jacobi: 78 CG iterations at 1280 x 720 instead of 17, 1.3x the time).
+/// Both keep the regularisation floor the network was trained on ([`CANDIDATE_REG_FLOOR`]).
 /// (`alpha` is what a solve run on the prior weights its data term by.)
 fn candidates(config: &CombinerConfig) -> [PoissonL1Config; 2] {
-    let strong = PoissonL1Config::prior();
+    let strong = PoissonL1Config {
+        reg_floor: CANDIDATE_REG_FLOOR,
+        ..PoissonL1Config::prior()
+    };
     [
         PoissonL1Config {
             alpha: strong.prior_alpha,
