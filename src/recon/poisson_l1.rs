@@ -122,7 +122,7 @@ pub(crate) const DEFAULT_PRIOR_ALPHA_L1: f32 = 2.5;
 /// gradients are noisy, where a floor of 1e-2 leaves it nearly least squares and lets the
 /// noise through (`docs/benchmarks.md`, thirtieth session). At 1280 x 720 it costs one more
 /// IRLS step.
-pub(crate) const PRIOR_REG_FLOOR: f32 = 5e-3;
+const PRIOR_REG_FLOOR: f32 = 5e-3;
 
 /// Default of [`PoissonL1Config::cg_change`].
 const CG_CHANGE: f32 = 5e-5;
@@ -214,7 +214,8 @@ impl PoissonL1Config {
 
     /// The prior path: the data term is the prior (Open Image Denoise's output, or the frame's
     /// `prior` layer) with weight 2.5, 12 IRLS steps, CG to a relative residual of 1e-4, the
-    /// regularisation's floor at 5e-3 ([`PRIOR_REG_FLOOR`]).
+    /// regularisation's floor at 5e-3 (chosen on validation by the worst frame against OIDN:
+    /// `docs/benchmarks.md`, thirtieth session).
     ///
     /// Chosen on the validation split against OIDN alone (docs/benchmarks.md, "The prior"):
     /// the group-L1 data term keeps the prior wherever the gradients disagree with it
