@@ -41,7 +41,7 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
-use super::band::{self, banded, NOISE_BAND};
+use super::band::{self, banded, Band, BAND_TRIM, NOISE_BAND};
 use super::dct::DctPoisson;
 use super::multigrid::{multigrid_bytes, Multigrid};
 use super::ops::{apply_weighted, plane_sums, row_sum, weighted_row, Dims, Operator, RowWeights};
@@ -91,6 +91,8 @@ pub struct PoissonL1Config {
     /// Half-width of the noise band the output is clamped to, in standard deviations of the
     /// base image's noise (`recon/band.rs`); 0: off.
     pub noise_band: f32,
+    /// The noise band's trimming ratio at 64 spp or more (`recon/band.rs`); 0: never trimmed.
+    pub band_trim: f32,
 }
 
 /// The preconditioner of each IRLS step's conjugate gradients.
@@ -184,6 +186,7 @@ impl Default for PoissonL1Config {
             data: DataTerm::Colour,
             prior_alpha: DEFAULT_PRIOR_ALPHA_L1,
             noise_band: NOISE_BAND,
+            band_trim: BAND_TRIM,
         }
     }
 }
@@ -365,6 +368,7 @@ impl Params for PoissonL1Config {
             |c, v| c.prior_alpha = v,
         ),
         band::param(|c| c.noise_band, |c, v| c.noise_band = v),
+        band::trim_param(|c| c.band_trim, |c, v| c.band_trim = v),
     ];
 
     const PRESETS: &'static [Preset<Self>] = &[
@@ -413,7 +417,13 @@ impl Register for PoissonL1Config {
                 Box::new(OnPrior::new(context, width, height, inner))
             }
         };
-        Ok(banded(inner, self.noise_band))
+        Ok(banded(
+            inner,
+            Band {
+                k: self.noise_band,
+                trim: self.band_trim,
+            },
+        ))
     }
 
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {

@@ -16,7 +16,7 @@ use std::borrow::Cow;
 
 use rayon::prelude::*;
 
-use super::band::{self, banded, NOISE_BAND};
+use super::band::{self, banded, Band, BAND_TRIM, NOISE_BAND};
 use super::converged::converged_mask;
 use super::param::{choices, Param, Params, Preset};
 use super::poisson_l1::{l1_memory, PoissonL1};
@@ -77,6 +77,8 @@ pub struct FrgrConfig {
     /// Half-width of the noise band the output is clamped to, in standard deviations of the
     /// base image's noise (`recon/band.rs`); 0: off.
     pub noise_band: f32,
+    /// The noise band's trimming ratio at 64 spp or more (`recon/band.rs`); 0: never trimmed.
+    pub band_trim: f32,
 }
 
 impl Default for FrgrConfig {
@@ -89,6 +91,7 @@ impl Default for FrgrConfig {
             prefilter: true,
             rdfc_radius: rdfc::RADIUS,
             noise_band: NOISE_BAND,
+            band_trim: BAND_TRIM,
         }
     }
 }
@@ -164,6 +167,7 @@ impl Params for FrgrConfig {
             |c, v| c.prefilter = v,
         ),
         band::param(|c| c.noise_band, |c, v| c.noise_band = v),
+        band::trim_param(|c| c.band_trim, |c, v| c.band_trim = v),
     ];
 
     const PRESETS: &'static [Preset<Self>] = &[Preset {
@@ -193,7 +197,13 @@ impl Register for FrgrConfig {
         height: usize,
     ) -> Result<Box<dyn Reconstructor>> {
         let inner = Box::new(Frgr::new(context, *self, width, height)?);
-        Ok(banded(inner, self.noise_band))
+        Ok(banded(
+            inner,
+            Band {
+                k: self.noise_band,
+                trim: self.band_trim,
+            },
+        ))
     }
 
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {

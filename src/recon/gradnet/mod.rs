@@ -68,7 +68,7 @@ impl Precision {
 
 #[cfg(feature = "gradnet")]
 use super::band::banded;
-use super::band::{self, NOISE_BAND};
+use super::band::{self, BAND_TRIM, NOISE_BAND};
 use super::param::{choices, Param, Params, Range};
 use super::{Reconstructor, Register};
 use crate::context::Context;
@@ -106,6 +106,8 @@ pub struct GradNetConfig {
     /// Half-width of the noise band the output is clamped to, in standard deviations of the
     /// base image's noise (`recon/band.rs`); 0: off.
     pub noise_band: f32,
+    /// The noise band's trimming ratio at 64 spp or more (`recon/band.rs`); 0: never trimmed.
+    pub band_trim: f32,
 }
 
 impl Default for GradNetConfig {
@@ -120,6 +122,7 @@ impl Default for GradNetConfig {
             bias_correction: true,
             range_limit: 2.0,
             noise_band: NOISE_BAND,
+            band_trim: BAND_TRIM,
         }
     }
 }
@@ -171,6 +174,7 @@ impl Params for GradNetConfig {
             |c, v| c.range_limit = v,
         ),
         band::param(|c| c.noise_band, |c, v| c.noise_band = v),
+        band::trim_param(|c| c.band_trim, |c, v| c.band_trim = v),
         Param::bool(
             "use_features",
             "Use albedo, normal and depth when the frame has them (the full model); false \
@@ -211,7 +215,10 @@ impl Register for GradNetConfig {
         #[cfg(feature = "gradnet")]
         return Ok(banded(
             Box::new(GradNet::new(self.clone(), context, width, height)?),
-            self.noise_band,
+            band::Band {
+                k: self.noise_band,
+                trim: self.band_trim,
+            },
         ));
         #[cfg(not(feature = "gradnet"))]
         {
