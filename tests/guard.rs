@@ -8,7 +8,9 @@
 
 use std::path::{Path, PathBuf};
 
-use gdrecon::{io, metrics, Context, ContextOptions, Method, MethodConfig, Plan, Policy, Progress};
+use gdrecon::{
+    io, metrics, Context, ContextOptions, Frame, Method, MethodConfig, Plan, Policy, Progress,
+};
 
 /// The methods held to the bar.
 const METHODS: [Method; 4] = [
@@ -53,15 +55,14 @@ fn guard_frames() -> Vec<PathBuf> {
     files
 }
 
-/// relMSE of `config`'s output on the frame at `path`, and of the frame's base image.
-fn errors(context: &Context, config: &MethodConfig, path: &Path) -> (f64, f64) {
-    let frame = io::read_bundle(path, Policy::Replace).unwrap();
-    let reference = frame.reference().expect("guard frames have a reference");
-    let base = metrics::compare(frame.color(), reference).unwrap().rel_mse;
+/// relMSE of `config`'s output on `frame` (which has a reference); the output must be finite.
+fn error_of(context: &Context, config: &MethodConfig, frame: &Frame) -> f64 {
     let mut plan = Plan::new(context, config, frame.width(), frame.height()).unwrap();
-    let (out, _) = plan.execute(&frame, &Progress::none()).unwrap();
-    assert!(out.all_finite(), "{}: output is not finite", path.display());
-    (metrics::compare(&out, reference).unwrap().rel_mse, base)
+    let (out, _) = plan.execute(frame, &Progress::none()).unwrap();
+    assert!(out.all_finite(), "{config:?}: output is not finite");
+    metrics::compare(&out, frame.reference().unwrap())
+        .unwrap()
+        .rel_mse
 }
 
 /// The 64 spp `lamps` frame is one the band's trimming saves: FRGR with the band untrimmed
@@ -74,8 +75,12 @@ fn the_trimmed_band_keeps_frgr_under_its_base_beside_bulbs() {
     let trimmed = MethodConfig::default_for(Method::Frgr);
     let mut untrimmed = trimmed.clone();
     untrimmed.set_assignment("band_trim=0").unwrap();
-    let (error, base) = errors(&context, &trimmed, &path);
-    let (error_untrimmed, _) = errors(&context, &untrimmed, &path);
+    let frame = io::read_bundle(&path, Policy::Replace).unwrap();
+    let base = metrics::compare(frame.color(), frame.reference().unwrap())
+        .unwrap()
+        .rel_mse;
+    let error = error_of(&context, &trimmed, &frame);
+    let error_untrimmed = error_of(&context, &untrimmed, &frame);
     eprintln!("frgr {error:.4e}, untrimmed {error_untrimmed:.4e}, base {base:.4e}");
     assert!(
         error < 0.5 * base,
@@ -105,11 +110,7 @@ fn methods_beat_the_base_image_on_the_guard_frames() {
         let base = metrics::compare(frame.color(), reference).unwrap().rel_mse;
         let name = path.file_name().unwrap().to_string_lossy().into_owned();
         for method in METHODS.into_iter().filter(|m| m.is_built()) {
-            let config = MethodConfig::default_for(method);
-            let mut plan = Plan::new(&context, &config, frame.width(), frame.height()).unwrap();
-            let (out, _) = plan.execute(&frame, &Progress::none()).unwrap();
-            assert!(out.all_finite(), "{name}: {method} output is not finite");
-            let error = metrics::compare(&out, reference).unwrap().rel_mse;
+            let error = error_of(&context, &MethodConfig::default_for(method), &frame);
             eprintln!("{name}: {method} {error:.4e} (base {base:.4e})");
             let pair = (name.as_str(), method.name());
             let known = KNOWN_WORSE.contains(&pair)

@@ -57,22 +57,11 @@ pub(crate) const TRIM_MIN_SPP: f32 = 64.0;
 /// 0.01, so that dark pixels compare against a fixed level rather than against 0.
 const TRIM_FLOOR: f32 = 0.1;
 
-/// The band of one method: its half-width and trimming ratio.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) struct Band {
-    /// Half-width in standard deviations (`noise_band`); 0: off.
-    pub k: f32,
-    /// Trimming ratio (`band_trim`); 0: never trimmed.
-    pub trim: f32,
-}
-
-impl Band {
-    /// The trimming ratio that applies to `frame`: `trim` at [`TRIM_MIN_SPP`] or more, else 0.
-    fn trim_for(&self, frame: &Frame) -> f32 {
-        match frame.spp() {
-            Some(spp) if spp >= TRIM_MIN_SPP => self.trim,
-            _ => 0.0,
-        }
+/// The trimming ratio that applies to `frame`: `trim` at [`TRIM_MIN_SPP`] or more, else 0.
+fn trim_for(trim: f32, frame: &Frame) -> f32 {
+    match frame.spp() {
+        Some(spp) if spp >= TRIM_MIN_SPP => trim,
+        _ => 0.0,
     }
 }
 
@@ -111,12 +100,13 @@ const NOISE_BAND_DOC: &str =
      variance layer's 3 x 3 mean): where a reconstruction leaves the base by more, it is \
      wrong there; 0: off (frames without a variance layer are never clamped)";
 
-/// `inner`, its output clamped to `band` (`inner` itself when its width is 0). The band is
-/// taken around the frame the plan is given, whatever `inner` makes of it (the prior path
-/// anchors its solve to a prior, not to the base).
-pub(crate) fn banded(inner: Box<dyn Reconstructor>, band: Band) -> Box<dyn Reconstructor> {
-    if band.k > 0.0 {
-        Box::new(Banded { inner, band })
+/// `inner`, its output clamped to the noise band of half-width `k`, trimmed at ratio `trim`
+/// where the frame's spp allows (`inner` itself when `k` is 0). The band is taken around the
+/// frame the plan is given, whatever `inner` makes of it (the prior path anchors its solve to a
+/// prior, not to the base).
+pub(crate) fn banded(inner: Box<dyn Reconstructor>, k: f32, trim: f32) -> Box<dyn Reconstructor> {
+    if k > 0.0 {
+        Box::new(Banded { inner, k, trim })
     } else {
         inner
     }
@@ -124,7 +114,8 @@ pub(crate) fn banded(inner: Box<dyn Reconstructor>, band: Band) -> Box<dyn Recon
 
 struct Banded {
     inner: Box<dyn Reconstructor>,
-    band: Band,
+    k: f32,
+    trim: f32,
 }
 
 impl Reconstructor for Banded {
@@ -144,7 +135,7 @@ impl Reconstructor for Banded {
             report.skip("noise band (no variance layer)");
             return Ok(());
         }
-        let (k, trim) = (self.band.k, self.band.trim_for(frame));
+        let (k, trim) = (self.k, trim_for(self.trim, frame));
         let moved = report.time("noise band", || clamp_to_band(out, frame, k, trim));
         if moved > 0 {
             let how = if trim > 0.0 {
@@ -330,11 +321,10 @@ mod tests {
             x if x >= 3 => 400.0,
             _ => 0.02,
         });
-        let band = Band { k: 5.0, trim: 8.0 };
         for (spp, trimmed) in [(Some(64.0), true), (Some(16.0), false), (None, false)] {
             let f = frame_of(colour.clone(), Some(var.clone()), spp);
             let mut got = out.clone();
-            clamp_to_band(&mut got, &f, band.k, band.trim_for(&f));
+            clamp_to_band(&mut got, &f, 5.0, trim_for(8.0, &f));
             let dark = got.at(0, 2, 1);
             if trimmed {
                 // sqrt(1e-4) x 5 = 0.05 around 0.02.

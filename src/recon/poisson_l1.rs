@@ -41,7 +41,7 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
-use super::band::{self, banded, Band, BAND_TRIM, NOISE_BAND};
+use super::band::{self, banded, BAND_TRIM, NOISE_BAND};
 use super::dct::DctPoisson;
 use super::multigrid::{multigrid_bytes, Multigrid};
 use super::ops::{apply_weighted, plane_sums, row_sum, weighted_row, Dims, Operator, RowWeights};
@@ -417,13 +417,7 @@ impl Register for PoissonL1Config {
                 Box::new(OnPrior::new(context, width, height, inner))
             }
         };
-        Ok(banded(
-            inner,
-            Band {
-                k: self.noise_band,
-                trim: self.band_trim,
-            },
-        ))
+        Ok(banded(inner, self.noise_band, self.band_trim))
     }
 
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {

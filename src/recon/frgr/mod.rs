@@ -16,7 +16,7 @@ use std::borrow::Cow;
 
 use rayon::prelude::*;
 
-use super::band::{self, banded, Band, BAND_TRIM, NOISE_BAND};
+use super::band::{self, banded, BAND_TRIM, NOISE_BAND};
 use super::converged::converged_mask;
 use super::param::{choices, Param, Params, Preset};
 use super::poisson_l1::{l1_memory, PoissonL1};
@@ -197,13 +197,7 @@ impl Register for FrgrConfig {
         height: usize,
     ) -> Result<Box<dyn Reconstructor>> {
         let inner = Box::new(Frgr::new(context, *self, width, height)?);
-        Ok(banded(
-            inner,
-            Band {
-                k: self.noise_band,
-                trim: self.band_trim,
-            },
-        ))
+        Ok(banded(inner, self.noise_band, self.band_trim))
     }
 
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {

@@ -215,10 +215,8 @@ impl Register for GradNetConfig {
         #[cfg(feature = "gradnet")]
         return Ok(banded(
             Box::new(GradNet::new(self.clone(), context, width, height)?),
-            band::Band {
-                k: self.noise_band,
-                trim: self.band_trim,
-            },
+            self.noise_band,
+            self.band_trim,
         ));
         #[cfg(not(feature = "gradnet"))]
         {
