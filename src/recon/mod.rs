@@ -23,6 +23,7 @@ pub mod converged;
 #[cfg(feature = "testing")]
 pub mod copy;
 mod dct;
+mod emitters;
 pub mod frgr;
 pub mod gradnet;
 mod multigrid;

@@ -79,6 +79,9 @@ pub struct FrgrConfig {
     pub noise_band: f32,
     /// The noise band's trimming ratio at 64 spp or more (`recon/band.rs`); 0: never trimmed.
     pub band_trim: f32,
+    /// Below 64 spp also trim the band of bright neighbours the gradients confirm as an
+    /// object's edge (`recon/emitters.rs`): FRGR spreads lamps into the dark around them.
+    pub band_emitters: bool,
 }
 
 impl Default for FrgrConfig {
@@ -92,6 +95,7 @@ impl Default for FrgrConfig {
             rdfc_radius: rdfc::RADIUS,
             noise_band: NOISE_BAND,
             band_trim: BAND_TRIM,
+            band_emitters: true,
         }
     }
 }
@@ -168,6 +172,7 @@ impl Params for FrgrConfig {
         ),
         band::param(|c| c.noise_band, |c, v| c.noise_band = v),
         band::trim_param(|c| c.band_trim, |c, v| c.band_trim = v),
+        band::emitters_param(|c| c.band_emitters, |c, v| c.band_emitters = v),
     ];
 
     const PRESETS: &'static [Preset<Self>] = &[Preset {
@@ -197,7 +202,12 @@ impl Register for FrgrConfig {
         height: usize,
     ) -> Result<Box<dyn Reconstructor>> {
         let inner = Box::new(Frgr::new(context, *self, width, height)?);
-        Ok(banded(inner, self.noise_band, self.band_trim))
+        Ok(banded(
+            inner,
+            self.noise_band,
+            self.band_trim,
+            self.band_emitters,
+        ))
     }
 
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
