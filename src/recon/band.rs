@@ -181,13 +181,16 @@ impl Reconstructor for Banded {
         let (moved, trim, edges) = report.time("noise band", || -> Result<_> {
             let (trim, edges) = trimming(self.trim, self.edges, frame)?;
             let moved = clamp_to_band(out, frame, k, trim, edges.as_deref());
-            Ok((moved, trim, edges.map(|e| e.iter().filter(|&&e| e).count())))
+            Ok((moved, trim, edges))
         })?;
         if moved > 0 {
             let how = match (trim > 0.0, edges) {
                 (false, _) => String::new(),
                 (true, None) => format!(", trimmed at {trim}x"),
-                (true, Some(n)) => format!(", trimmed at {trim}x of {n} edge pixels"),
+                (true, Some(e)) => format!(
+                    ", trimmed at {trim}x of {} edge pixels",
+                    e.iter().filter(|&&e| e).count()
+                ),
             };
             report.note(format!(
                 "noise band: {moved} values clamped to the base ± {k} standard deviations{how}"

@@ -40,15 +40,13 @@ const FLOOR: f32 = 0.3;
 pub(crate) fn edge_pixels(frame: &Frame, ratio: f32) -> Result<Vec<bool>> {
     let (w, h) = frame.size();
     let n = w * h;
-    let sums = |img: &crate::image::Image| -> Result<Vec<f32>> {
-        let s = img.as_slice();
-        let mut out = try_vec(n, 0.0f32)?;
-        out.par_iter_mut()
-            .enumerate()
-            .for_each(|(i, o)| *o = s[i] + s[n + i] + s[2 * n + i]);
-        Ok(out)
-    };
-    let (c, gx, gy) = (sums(frame.color())?, sums(frame.dx())?, sums(frame.dy())?);
+    // Channel sums, read where needed (each is read at most five times; no planes of them).
+    let sum = |img: &[f32], i: usize| img[i] + img[n + i] + img[2 * n + i];
+    let (colour, dx, dy) = (
+        frame.color().as_slice(),
+        frame.dx().as_slice(),
+        frame.dy().as_slice(),
+    );
     // Per pixel: whether it has a jump, and whether it passes the first test.
     let mut jump = try_vec(n, false)?;
     let mut seen = try_vec(n, false)?;
@@ -60,30 +58,33 @@ pub(crate) fn edge_pixels(frame: &Frame, ratio: f32) -> Result<Vec<bool>> {
                 let p = y * w + x;
                 // (neighbour, the gradient's estimate of c(q) - c(p))
                 let neighbours = [
-                    (x + 1 < w).then(|| (p + 1, gx[p])),
-                    (x > 0).then(|| (p - 1, -gx[p - 1])),
-                    (y + 1 < h).then(|| (p + w, gy[p])),
-                    (y > 0).then(|| (p - w, -gy[p - w])),
+                    (x + 1 < w).then(|| (p + 1, sum(dx, p))),
+                    (x > 0).then(|| (p - 1, -sum(dx, p - 1))),
+                    (y + 1 < h).then(|| (p + w, sum(dy, p))),
+                    (y > 0).then(|| (p - w, -sum(dy, p - w))),
                 ];
+                let cp = sum(colour, p);
                 let (mut jumps, mut confirmed) = (0u32, 0u32);
                 for (q, g) in neighbours.into_iter().flatten() {
-                    if c[p] > ratio * (c[q].max(0.0) + FLOOR) {
+                    let cq = sum(colour, q);
+                    if cp > ratio * (cq.max(0.0) + FLOOR) {
                         jumps += 1;
-                        confirmed += u32::from(g.abs() >= SEEN * (c[q] - c[p]).abs());
+                        confirmed += u32::from(g.abs() >= SEEN * (cq - cp).abs());
                     }
                 }
                 jump[x] = jumps > 0;
                 seen[x] = jumps > 0 && 4 * confirmed >= 3 * jumps;
             }
         });
-    let mut edge = try_vec(n, false)?;
+    // The jump flags become the edge flags in place (a pixel reads only its own jump flag).
+    let mut edge = jump;
     edge.par_chunks_mut(w.max(1))
         .enumerate()
         .for_each(|(y, edge)| {
             for (x, e) in edge.iter_mut().enumerate() {
                 let p = y * w + x;
                 *e = seen[p]
-                    || (jump[p]
+                    || (*e
                         && ((x + 1 < w && seen[p + 1])
                             || (x > 0 && seen[p - 1])
                             || (y + 1 < h && seen[p + w])
