@@ -5,9 +5,9 @@
 //!    the prior** (preset `prior`) when the combiner cannot run (built without ONNX Runtime,
 //!    the runtime or the model not found, or the frame lacks variance, albedo or normal) or
 //!    `use_combiner` is false; taken when the frame has a `prior` layer or Open Image Denoise
-//!    can be loaded. On the validation split the combiner is 0.77 / 0.77 / 0.67x OIDN alone
+//!    can be loaded. On the validation split the combiner is 0.77 / 0.77 / 0.66x OIDN alone
 //!    (geometric mean at 4 / 16 / 64 spp) with no frame above 1.03x; L1 on the prior 0.88 /
-//!    0.86 / 0.80x (worst 1.03x); both better than every method without a prior (the best of
+//!    0.85 / 0.78x (worst 1.02x); both better than every method without a prior (the best of
 //!    them, GradNet, is 1.61 / 1.02 / 1.06x OIDN there). The combiner became the default in
 //!    the twenty-first session, once no validation frame was worse than OIDN alone by more
 //!    than #16's 5 % (`docs/benchmarks.md`). Why the combiner or OIDN could not run is part of

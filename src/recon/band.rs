@@ -31,6 +31,21 @@
 //! `lamps` at 4 spp from 1.85x to 0.97x, and no validation, test or new frame is worse by
 //! more than 0.2 % (`docs/benchmarks.md`, thirty-second session).
 //!
+//! **Scope** (`band_scope`): `all` clamps every pixel; `edges` only the pixels whose mean
+//! lost a neighbour to trimming (the dark ring around an emitter), and only at
+//! [`EDGES_MIN_SPP`] spp or more. It is the prior paths' choice (`l1`'s `prior` preset and
+//! `combiner`): OIDN spreads a bulb into its ring (the guard's `lamps_16spp`, L1 on the prior
+//! 8.4x its base), and there the band is right; elsewhere the prior is so much better than the
+//! base that the band's cuts where the variance undershoots outweigh what it catches (the band
+//! everywhere: on validation at 4 spp 0.7 % worse on average, 23 % on `indirect`). Below 16 spp a
+//! dark pixel beside a lamp too often has no sample on it (validation `dusk` 4 spp +3.7 %).
+//! On validation, against no band: L1 on the prior 1.4 % better at 16 spp and 3.0 % at 64,
+//! the combiner 0 % and 1.1 %, no frame worse by more than 0.3 %; on test, evaluated once,
+//! 14 % / 6.5 % and 8.6 % / 3.5 %, no frame worse by more than 1.3 % (`docs/benchmarks.md`,
+//! thirty-third session). The band keeps one width for every method: narrower bands (k = 1
+//! to 4) did a little better at 16 and 64 spp on validation, driven by two families, and
+//! trend towards the base image beside every lamp.
+//!
 //! The width `k` is each method's `noise_band` parameter. Its default, 5, was chosen on the
 //! validation split (`docs/benchmarks.md`, "The noise band"): there it removes the gross
 //! departures (FRGR's geometric-mean relMSE falls 6-23 % and no FRGR frame is worse than its
@@ -45,7 +60,7 @@
 use rayon::prelude::*;
 
 use super::emitters::edge_pixels;
-use super::param::{Param, Range};
+use super::param::{choices, Param, Range};
 use super::{Method, Reconstructor};
 use crate::error::Result;
 use crate::frame::Frame;
@@ -61,8 +76,29 @@ pub(crate) const NOISE_BAND: f32 = 5.0;
 /// leave the band's variance mean.
 pub(crate) const BAND_TRIM: f32 = 8.0;
 
+/// Where the noise band clamps the output.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum BandScope {
+    /// Every pixel (the default of every method that has a band).
+    All,
+    /// Only the pixels whose band the trimming narrowed: the dark neighbours of an emitter's
+    /// edge, where a solve or a denoiser spreads the emitter. The prior path's choice: there
+    /// the band everywhere undoes the prior where a dark pixel's few samples all missed the
+    /// light (variance 0).
+    Edges,
+}
+
+choices!(BandScope { All => "all", Edges => "edges" });
+
 /// The least spp at which the band is trimmed (frames of unknown spp never are).
 pub(crate) const TRIM_MIN_SPP: f32 = 64.0;
+
+/// The least spp at which [`BandScope::Edges`] clamps at all (frames of unknown spp never
+/// do): with `n` samples a dark pixel beside a lamp covering a fraction `a` of its footprint
+/// misses the lamp with probability `(1 - a)^n`, 13 % at `a` = 0.4 and 4 spp, 0.03 % at 16;
+/// then its variance is 0 and its band excludes the right answer.
+pub(crate) const EDGES_MIN_SPP: f32 = 16.0;
 
 /// Radiance added to the pixel's base value in the trimming test: the square root of relMSE's
 /// 0.01, so that dark pixels compare against a fixed level rather than against 0.
@@ -112,6 +148,17 @@ pub(crate) const fn emitters_param<C>(get: fn(&C) -> bool, set: fn(&mut C, bool)
     Param::bool("band_emitters", BAND_EMITTERS_DOC, get, set)
 }
 
+/// The `band_scope` entry of a method's parameter table, shared as [`param`].
+/// `get` and `set` take the choice's index ([`BandScope::index`], [`BandScope::ALL`]).
+pub(crate) const fn scope_param<C>(get: fn(&C) -> usize, set: fn(&mut C, usize)) -> Param<C> {
+    Param::choice("band_scope", BandScope::NAMES, BAND_SCOPE_DOC, get, set)
+}
+
+/// The documentation of every method's `band_scope` parameter.
+const BAND_SCOPE_DOC: &str =
+    "Where the noise band clamps: every pixel (all), or only the pixels whose band the \
+     trimming narrowed, the dark neighbours of an emitter's edge, at 16 spp or more (edges)";
+
 /// The documentation of every method's `band_emitters` parameter.
 const BAND_EMITTERS_DOC: &str =
     "Below 64 spp, or with the spp unknown, still trim the noise band of the neighbours that \
@@ -132,14 +179,15 @@ const NOISE_BAND_DOC: &str =
      wrong there; 0: off (frames without a variance layer are never clamped)";
 
 /// `inner`, its output clamped to the noise band of half-width `k`, trimmed at ratio `trim`
-/// where the frame's spp allows, and below that of edge pixels if `edges` (`inner` itself when
-/// `k` is 0). The band is taken around the frame the plan is given, whatever `inner` makes of
+/// where the frame's spp allows, and below that of edge pixels if `edges`, over `scope`
+/// (`inner` itself when `k` is 0). The band is taken around the frame the plan is given, whatever `inner` makes of
 /// it (the prior path anchors its solve to a prior, not to the base).
 pub(crate) fn banded(
     inner: Box<dyn Reconstructor>,
     k: f32,
     trim: f32,
     edges: bool,
+    scope: BandScope,
 ) -> Box<dyn Reconstructor> {
     if k > 0.0 {
         Box::new(Banded {
@@ -147,6 +195,7 @@ pub(crate) fn banded(
             k,
             trim,
             edges,
+            scope,
         })
     } else {
         inner
@@ -158,6 +207,7 @@ struct Banded {
     k: f32,
     trim: f32,
     edges: bool,
+    scope: BandScope,
 }
 
 impl Reconstructor for Banded {
@@ -177,10 +227,14 @@ impl Reconstructor for Banded {
             report.skip("noise band (no variance layer)");
             return Ok(());
         }
+        if self.scope == BandScope::Edges && frame.spp().is_none_or(|spp| spp < EDGES_MIN_SPP) {
+            report.skip("noise band (edges only, from 16 spp)");
+            return Ok(());
+        }
         let k = self.k;
         let (moved, trim, edges) = report.time("noise band", || -> Result<_> {
             let (trim, edges) = trimming(self.trim, self.edges, frame)?;
-            let moved = clamp_to_band(out, frame, k, trim, edges.as_deref());
+            let moved = clamp_to_band(out, frame, k, trim, edges.as_deref(), self.scope);
             Ok((moved, trim, edges))
         })?;
         if moved > 0 {
@@ -202,14 +256,16 @@ impl Reconstructor for Banded {
 
 /// Clamps `out` to the base image ± `k` standard deviations of its noise, the variance mean
 /// trimmed at ratio `trim` (0: not trimmed; the spp gate is the caller's) of every neighbour
-/// beyond it, or with `edges` of those that are edge pixels only; returns how many values
-/// moved (0 without a variance layer or with `k` 0, which means off).
+/// beyond it, or with `edges` of those that are edge pixels only, at every pixel or (`scope`
+/// [`BandScope::Edges`]) at those whose mean lost a neighbour; returns how many values moved
+/// (0 without a variance layer or with `k` 0, which means off).
 pub(crate) fn clamp_to_band(
     out: &mut Image,
     frame: &Frame,
     k: f32,
     trim: f32,
     edges: Option<&[bool]>,
+    scope: BandScope,
 ) -> u64 {
     let Some(var) = frame.variance() else {
         return 0;
@@ -260,6 +316,9 @@ pub(crate) fn clamp_to_band(
                         count += 1;
                     }
                 }
+                if scope == BandScope::Edges && count == 9 {
+                    continue;
+                }
                 let s = ((sum / f64::from(count)).max(0.0).sqrt() * f64::from(k)) as f32;
                 let clamped = v.clamp(b - s, b + s);
                 if clamped != *v {
@@ -301,8 +360,16 @@ mod tests {
 
     /// The definition, pixel by pixel, in f64: the neighbours kept are the pixel itself and
     /// those whose base is at most `trim (b + 0.1)` (all of them when `trim` is 0), or with
-    /// `edges` those too that are not edge pixels.
-    fn reference(out: &Image, frame: &Frame, k: f32, trim: f32, edges: Option<&[bool]>) -> Image {
+    /// `edges` those too that are not edge pixels; with `scope` [`BandScope::Edges`] a pixel
+    /// that kept all nine is left as it is.
+    fn reference(
+        out: &Image,
+        frame: &Frame,
+        k: f32,
+        trim: f32,
+        edges: Option<&[bool]>,
+        scope: BandScope,
+    ) -> Image {
         let (w, h) = out.size();
         let var = frame.variance().unwrap();
         let base = frame.color();
@@ -324,6 +391,9 @@ mod tests {
                     sum += f64::from(var.at(c, xx, yy));
                     count += 1.0;
                 }
+            }
+            if scope == BandScope::Edges && count == 9.0 {
+                return out.at(c, x, y);
             }
             let s = ((sum / count).sqrt() * f64::from(k)) as f32;
             out.at(c, x, y).clamp(b - s, b + s)
@@ -350,17 +420,24 @@ mod tests {
         // Some pixels flagged as edges, to trim those alone.
         let flags: Vec<bool> = (0..w * h).map(|p| p % 3 != 1).collect();
         let mut moves = Vec::new();
+        let mut scoped = Vec::new();
         for (trim, edges) in [(0.0, None), (8.0, None), (8.0, Some(&flags[..]))] {
             for k in [0.5, 2.0, 5.0] {
                 let mut got = out.clone();
-                let moved = clamp_to_band(&mut got, &f, k, trim, edges);
-                let want = reference(&out, &f, k, trim, edges);
+                let moved = clamp_to_band(&mut got, &f, k, trim, edges, BandScope::All);
+                let want = reference(&out, &f, k, trim, edges, BandScope::All);
                 assert_eq!(
                     got,
                     want,
                     "k = {k}, trim = {trim}, edges {}",
                     edges.is_some()
                 );
+                let mut near = out.clone();
+                let only = clamp_to_band(&mut near, &f, k, trim, edges, BandScope::Edges);
+                let want_near = reference(&out, &f, k, trim, edges, BandScope::Edges);
+                assert_eq!(near, want_near, "edges scope, k = {k}, trim = {trim}");
+                assert!(only <= moved, "k = {k}, trim = {trim}");
+                scoped.push(only);
                 let differ = out
                     .as_slice()
                     .iter()
@@ -379,6 +456,13 @@ mod tests {
         assert!(
             moves[6..].iter().zip(&moves[3..6]).any(|(e, t)| e < t),
             "trimming edges alone must keep some bands wider: {moves:?}"
+        );
+        // Untrimmed, the edges scope clamps nothing; trimmed, it clamps some but not all.
+        assert!(scoped[..3].iter().all(|&m| m == 0), "{scoped:?}");
+        assert!(
+            scoped[3..].iter().all(|&m| m > 0)
+                && scoped[3..].iter().zip(&moves[3..]).any(|(s, m)| s < m),
+            "{scoped:?} against {moves:?}"
         );
     }
 
@@ -406,7 +490,7 @@ mod tests {
             let mut got = out.clone();
             let (trim, edges) = trimming(8.0, true, &f).unwrap();
             assert!(edges.as_ref().is_none_or(|e| e.iter().all(|&e| !e)));
-            clamp_to_band(&mut got, &f, 5.0, trim, edges.as_deref());
+            clamp_to_band(&mut got, &f, 5.0, trim, edges.as_deref(), BandScope::All);
             let dark = got.at(0, 2, 1);
             if trimmed {
                 // sqrt(1e-4) x 5 = 0.05 around 0.02.
@@ -420,33 +504,96 @@ mod tests {
         }
     }
 
+    /// A bulb in the last two columns of a `w` x 3 frame (its edge pixel, at `w - 2`, partly
+    /// covered: variance 2500), the gradient across the edge seeing it, and an output whose
+    /// dark pixel beside the edge (`w - 3`) the solve spread the bulb into (4; the base 0.02,
+    /// variance 1e-4, so its trimmed band reaches 0.07).
+    fn seen_lamp(w: usize, spp: Option<f32>) -> (Frame, Image) {
+        let h = 3;
+        let colour = Image::from_fn(3, w, h, |(_, x, _)| if x >= w - 2 { 400.0 } else { 0.02 });
+        let var = Image::from_fn(3, w, h, |(_, x, _)| if x == w - 2 { 2500.0 } else { 1e-4 });
+        // dx(w - 3) = I(w - 2) - I(w - 3): the gradient across the edge sees it.
+        let dx = Image::from_fn(3, w, h, |(_, x, _)| if x == w - 3 { 399.98 } else { 0.0 });
+        let out = Image::from_fn(3, w, h, |(_, x, _)| match x {
+            x if x == w - 3 => 4.0,
+            x if x >= w - 2 => 400.0,
+            _ => 0.02,
+        });
+        let frame = FrameBuilder::new()
+            .image(Layer::Color, colour)
+            .image(Layer::Dx, dx)
+            .image(Layer::Dy, Image::zeros(3, w, h))
+            .image(Layer::Variance, var)
+            .spp(spp)
+            .build(Policy::Strict)
+            .unwrap();
+        (frame, out)
+    }
+
+    /// A reconstructor that writes a fixed image, to test the band's wrapper.
+    struct Fixed(Image);
+
+    impl Reconstructor for Fixed {
+        fn method(&self) -> Method {
+            Method::PoissonL1
+        }
+
+        fn reconstruct_into(
+            &mut self,
+            _: &Frame,
+            out: &mut Image,
+            _: &mut Report,
+            _: &Progress,
+        ) -> Result<()> {
+            out.as_mut_slice().copy_from_slice(self.0.as_slice());
+            Ok(())
+        }
+    }
+
+    /// The edges scope clamps the emitter's spread dark neighbour from 16 spp on, never below
+    /// or with the spp unknown, and leaves a pixel whose band lost no neighbour as it is
+    /// whatever it holds; the full scope clamps both at any spp.
+    #[test]
+    fn the_edges_scope_clamps_beside_edges_from_16_spp() {
+        for spp in [Some(4.0), Some(15.0), Some(16.0), Some(64.0), None] {
+            let (f, spread) = seen_lamp(6, spp);
+            // x = 3 spread from the emitter; x = 0 far from it, wrong by more than its band.
+            let out = Image::from_fn(3, 6, 3, |(c, x, y)| match x {
+                0 => 1.0,
+                _ => spread.at(c, x, y),
+            });
+            for scope in [BandScope::All, BandScope::Edges] {
+                let mut r = banded(Box::new(Fixed(out.clone())), 5.0, 8.0, true, scope);
+                let mut got = Image::zeros(3, 6, 3);
+                let mut report = Report::default();
+                r.reconstruct_into(&f, &mut got, &mut report, &Progress::none())
+                    .unwrap();
+                let on = scope == BandScope::All || spp.is_some_and(|s| s >= 16.0);
+                let (near, far) = (got.at(1, 3, 1), got.at(1, 0, 1));
+                let near_want = if on { 0.07 } else { 4.0 };
+                assert!(
+                    (near - near_want).abs() < 1e-6,
+                    "{scope:?}, spp {spp:?}: {near}"
+                );
+                let far_want = if scope == BandScope::All { 0.07 } else { 1.0 };
+                assert!(
+                    (far - far_want).abs() < 1e-6,
+                    "{scope:?}, spp {spp:?}: {far}"
+                );
+            }
+        }
+    }
+
     /// The same emitter, its edge now seen by the gradients: below 64 spp (and with the spp
     /// unknown) the band is trimmed of it when edge trimming is on, and only then.
     #[test]
     fn a_seen_emitter_edge_is_trimmed_at_any_spp() {
-        let (w, h) = (5, 3);
-        let colour = Image::from_fn(3, w, h, |(_, x, _)| if x >= 3 { 400.0 } else { 0.02 });
-        let var = Image::from_fn(3, w, h, |(_, x, _)| if x == 3 { 2500.0 } else { 1e-4 });
-        // dx(2) = I(3) - I(2): the gradient across the edge sees it.
-        let dx = Image::from_fn(3, w, h, |(_, x, _)| if x == 2 { 399.98 } else { 0.0 });
-        let out = Image::from_fn(3, w, h, |(_, x, _)| match x {
-            2 => 4.0,
-            x if x >= 3 => 400.0,
-            _ => 0.02,
-        });
         for spp in [Some(4.0), Some(16.0), None] {
+            let (f, out) = seen_lamp(5, spp);
             for on in [true, false] {
-                let f = FrameBuilder::new()
-                    .image(Layer::Color, colour.clone())
-                    .image(Layer::Dx, dx.clone())
-                    .image(Layer::Dy, Image::zeros(3, w, h))
-                    .image(Layer::Variance, var.clone())
-                    .spp(spp)
-                    .build(Policy::Strict)
-                    .unwrap();
                 let (trim, edges) = trimming(8.0, on, &f).unwrap();
                 let mut got = out.clone();
-                clamp_to_band(&mut got, &f, 5.0, trim, edges.as_deref());
+                clamp_to_band(&mut got, &f, 5.0, trim, edges.as_deref(), BandScope::All);
                 let want = if on { 0.07 } else { 4.0 };
                 assert!(
                     (got.at(0, 2, 1) - want).abs() < 1e-6,
@@ -462,15 +609,18 @@ mod tests {
         let out = Image::from_fn(3, w, h, |(c, x, y)| (x + y + c) as f32);
         let mut got = out.clone();
         assert_eq!(
-            clamp_to_band(&mut got, &frame(w, h, None), 5.0, 8.0, None),
+            clamp_to_band(&mut got, &frame(w, h, None), 5.0, 8.0, None, BandScope::All),
             0
         );
         assert_eq!(got, out);
         let zero_var = frame(w, h, Some(Image::zeros(3, w, h)));
-        assert_eq!(clamp_to_band(&mut got, &zero_var, 0.0, 8.0, None), 0);
+        assert_eq!(
+            clamp_to_band(&mut got, &zero_var, 0.0, 8.0, None, BandScope::All),
+            0
+        );
         assert_eq!(got, out);
         // Zero variance and a band: the base image itself.
-        clamp_to_band(&mut got, &zero_var, 5.0, 8.0, None);
+        clamp_to_band(&mut got, &zero_var, 5.0, 8.0, None, BandScope::All);
         assert_eq!(&got, zero_var.color());
     }
 }

@@ -24,11 +24,16 @@
 //! dropped where its local mean departs from the prior's by more than [`MEAN_TOLERANCE`] (it
 //! lost or moved energy the gradients do not carry, as in caustics seen through glass).
 //!
+//! Then the noise band, beside emitters' edges only and from 16 spp, as on `l1`'s `prior`
+//! preset (`recon/band.rs`): the prior spreads a bulb into its dark ring and no candidate
+//! holds it (the guard's `lamps_16spp` 0.086 -> 0.050, its base 0.100).
+//!
 //! Needs ONNX Runtime (the `gradnet` cargo feature; found as for GradNet), a prior (OIDN or
 //! the frame's `prior` layer) and the frame's variance, albedo and normal layers.
 
 use std::path::PathBuf;
 
+use super::band::{self, BandScope, BAND_TRIM, NOISE_BAND};
 use super::gradnet::Precision;
 use super::param::{Param, Params, Range};
 use super::poisson_l1::{l1_memory, PoissonL1Config, Preconditioner};
@@ -67,6 +72,14 @@ pub struct CombinerConfig {
     /// An L1 candidate is dropped where its 9 x 9 local mean departs from the prior's by more
     /// than this fraction of it (the mean guard, [`MEAN_TOLERANCE`]); 0 turns the guard off.
     pub mean_tolerance: f32,
+    /// The noise band's half-width in standard deviations (`recon/band.rs`); 0: off.
+    pub noise_band: f32,
+    /// The band's trimming ratio.
+    pub band_trim: f32,
+    /// Below 64 spp, trim the band of the edge pixels the gradients confirm.
+    pub band_emitters: bool,
+    /// Where the band clamps: as the `prior` preset of `l1`, beside emitters' edges only.
+    pub band_scope: BandScope,
 }
 
 impl Default for CombinerConfig {
@@ -81,6 +94,10 @@ impl Default for CombinerConfig {
             step_change: STEP_CHANGE,
             cg_tolerance: PoissonL1Config::prior().cg_tolerance,
             mean_tolerance: MEAN_TOLERANCE,
+            noise_band: NOISE_BAND,
+            band_trim: BAND_TRIM,
+            band_emitters: true,
+            band_scope: BandScope::Edges,
         }
     }
 }
@@ -192,6 +209,13 @@ impl Params for CombinerConfig {
             |c| c.mean_tolerance,
             |c, v| c.mean_tolerance = v,
         ),
+        band::param(|c| c.noise_band, |c, v| c.noise_band = v),
+        band::trim_param(|c| c.band_trim, |c, v| c.band_trim = v),
+        band::emitters_param(|c| c.band_emitters, |c, v| c.band_emitters = v),
+        band::scope_param(
+            |c| c.band_scope.index(),
+            |c, v| c.band_scope = BandScope::ALL[v],
+        ),
     ];
 }
 
@@ -237,12 +261,18 @@ impl Register for CombinerConfig {
         height: usize,
     ) -> Result<Box<dyn Reconstructor>> {
         #[cfg(feature = "gradnet")]
-        return Ok(Box::new(enabled::Combiner::new(
-            self.clone(),
-            context,
-            width,
-            height,
-        )?));
+        return Ok(band::banded(
+            Box::new(enabled::Combiner::new(
+                self.clone(),
+                context,
+                width,
+                height,
+            )?),
+            self.noise_band,
+            self.band_trim,
+            self.band_emitters,
+            self.band_scope,
+        ));
         #[cfg(not(feature = "gradnet"))]
         {
             let _ = (context, width, height);

@@ -40,6 +40,7 @@ use std::str::FromStr;
 use rayon::prelude::*;
 
 pub use auto::AutoConfig;
+pub use band::BandScope;
 pub use combiner::CombinerConfig;
 #[cfg(feature = "testing")]
 pub use copy::CopyConfig;

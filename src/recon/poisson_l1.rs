@@ -41,7 +41,7 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
-use super::band::{self, banded, BAND_TRIM, NOISE_BAND};
+use super::band::{self, banded, BandScope, BAND_TRIM, NOISE_BAND};
 use super::dct::DctPoisson;
 use super::multigrid::{multigrid_bytes, Multigrid};
 use super::ops::{apply_weighted, plane_sums, row_sum, weighted_row, Dims, Operator, RowWeights};
@@ -97,6 +97,8 @@ pub struct PoissonL1Config {
     /// object's edge (`recon/emitters.rs`); off here: on validation it cost `l1` 5 % on
     /// `dusk` at 4 spp and `gradnet` 1.4 % on `dusk` at 16 spp.
     pub band_emitters: bool,
+    /// Where the band clamps: every pixel, or only beside an emitter's edge (`recon/band.rs`).
+    pub band_scope: BandScope,
 }
 
 /// The preconditioner of each IRLS step's conjugate gradients.
@@ -192,6 +194,7 @@ impl Default for PoissonL1Config {
             noise_band: NOISE_BAND,
             band_trim: BAND_TRIM,
             band_emitters: false,
+            band_scope: BandScope::All,
         }
     }
 }
@@ -232,9 +235,15 @@ impl PoissonL1Config {
     /// one frame), a larger one gives the gain away (3: 0.92x instead of 0.88x at 4 spp); L2
     /// cannot tell the two apart (at best 0.98x). With the prior as anchor the system is well
     /// conditioned, so 1e-4 is converged (1e-6 changes relMSE by under 1 %) at a third of
-    /// the cost; 1e-3 is not (up to 8 % worse). No noise band: on validation it costs this
-    /// path 3 % at 4 spp (the prior is so much better than the base that the band's cuts,
-    /// where the variance estimate undershoots, outweigh the errors it catches). CG is
+    /// the cost; 1e-3 is not (up to 8 % worse). The noise band only beside emitters' edges
+    /// ([`BandScope::Edges`], edge trimming on), from 16 spp: the denoiser spreads a bulb
+    /// into its dark ring, and the band holds those pixels to the base (the guard's
+    /// `lamps_16spp` from 8.4x its base to 0.53x; validation 1.4 % better at 16 spp, 3.0 %
+    /// at 64, no frame worse by more than 0.3 %). Everywhere, the band costs this path on
+    /// validation (4 spp: 23 % on one frame; the prior is so much better than the base that
+    /// its cuts, where the variance estimate undershoots, outweigh the errors it catches);
+    /// below 16 spp a dark pixel's few samples too often all missed the lamp
+    /// (`docs/benchmarks.md`, thirty-third session). CG is
     /// Jacobi-preconditioned: with the prior as anchor, one diagonal pass does what a
     /// multigrid V-cycle did at a tenth of its cost (at 1280 x 720: 12 CG iterations instead
     /// of 7, the solve 40 % faster; validation relMSE within 0.3 %).
@@ -248,7 +257,8 @@ impl PoissonL1Config {
             cg_change: 0.0,
             step_change: 0.0,
             cg_relative: 0.0,
-            noise_band: 0.0,
+            band_emitters: true,
+            band_scope: BandScope::Edges,
             reg_floor: PRIOR_REG_FLOOR,
             ..Self::default()
         }
@@ -375,6 +385,10 @@ impl Params for PoissonL1Config {
         band::param(|c| c.noise_band, |c, v| c.noise_band = v),
         band::trim_param(|c| c.band_trim, |c, v| c.band_trim = v),
         band::emitters_param(|c| c.band_emitters, |c, v| c.band_emitters = v),
+        band::scope_param(
+            |c| c.band_scope.index(),
+            |c, v| c.band_scope = BandScope::ALL[v],
+        ),
     ];
 
     const PRESETS: &'static [Preset<Self>] = &[
@@ -395,7 +409,8 @@ impl Params for PoissonL1Config {
             name: "prior",
             doc: "the prior path: data term the prior (Open Image Denoise's output or the \
                   frame's 'prior' layer), prior_alpha 2.5, 12 steps, CG to 1e-4, \
-                  regularisation floor 5e-3, no noise band",
+                  regularisation floor 5e-3, the noise band beside emitters' edges only (from \
+                  16 spp)",
             config: PoissonL1Config::prior,
         },
     ];
@@ -428,6 +443,7 @@ impl Register for PoissonL1Config {
             self.noise_band,
             self.band_trim,
             self.band_emitters,
+            self.band_scope,
         ))
     }
 

@@ -16,7 +16,7 @@ use std::borrow::Cow;
 
 use rayon::prelude::*;
 
-use super::band::{self, banded, BAND_TRIM, NOISE_BAND};
+use super::band::{self, banded, BandScope, BAND_TRIM, NOISE_BAND};
 use super::converged::converged_mask;
 use super::param::{choices, Param, Params, Preset};
 use super::poisson_l1::{l1_memory, PoissonL1};
@@ -82,6 +82,8 @@ pub struct FrgrConfig {
     /// Below 64 spp also trim the band of bright neighbours the gradients confirm as an
     /// object's edge (`recon/emitters.rs`): FRGR spreads lamps into the dark around them.
     pub band_emitters: bool,
+    /// Where the band clamps: every pixel, or only beside an emitter's edge (`recon/band.rs`).
+    pub band_scope: BandScope,
 }
 
 impl Default for FrgrConfig {
@@ -96,6 +98,7 @@ impl Default for FrgrConfig {
             noise_band: NOISE_BAND,
             band_trim: BAND_TRIM,
             band_emitters: true,
+            band_scope: BandScope::All,
         }
     }
 }
@@ -173,6 +176,10 @@ impl Params for FrgrConfig {
         band::param(|c| c.noise_band, |c, v| c.noise_band = v),
         band::trim_param(|c| c.band_trim, |c, v| c.band_trim = v),
         band::emitters_param(|c| c.band_emitters, |c, v| c.band_emitters = v),
+        band::scope_param(
+            |c| c.band_scope.index(),
+            |c, v| c.band_scope = BandScope::ALL[v],
+        ),
     ];
 
     const PRESETS: &'static [Preset<Self>] = &[Preset {
@@ -207,6 +214,7 @@ impl Register for FrgrConfig {
             self.noise_band,
             self.band_trim,
             self.band_emitters,
+            self.band_scope,
         ))
     }
 

@@ -68,7 +68,7 @@ impl Precision {
 
 #[cfg(feature = "gradnet")]
 use super::band::banded;
-use super::band::{self, BAND_TRIM, NOISE_BAND};
+use super::band::{self, BandScope, BAND_TRIM, NOISE_BAND};
 use super::param::{choices, Param, Params, Range};
 use super::{Reconstructor, Register};
 use crate::context::Context;
@@ -112,6 +112,8 @@ pub struct GradNetConfig {
     /// object's edge (`recon/emitters.rs`); off here: on validation it cost `l1` 5 % on
     /// `dusk` at 4 spp and `gradnet` 1.4 % on `dusk` at 16 spp.
     pub band_emitters: bool,
+    /// Where the band clamps: every pixel, or only beside an emitter's edge (`recon/band.rs`).
+    pub band_scope: BandScope,
 }
 
 impl Default for GradNetConfig {
@@ -128,6 +130,7 @@ impl Default for GradNetConfig {
             noise_band: NOISE_BAND,
             band_trim: BAND_TRIM,
             band_emitters: false,
+            band_scope: BandScope::All,
         }
     }
 }
@@ -181,6 +184,10 @@ impl Params for GradNetConfig {
         band::param(|c| c.noise_band, |c, v| c.noise_band = v),
         band::trim_param(|c| c.band_trim, |c, v| c.band_trim = v),
         band::emitters_param(|c| c.band_emitters, |c, v| c.band_emitters = v),
+        band::scope_param(
+            |c| c.band_scope.index(),
+            |c, v| c.band_scope = BandScope::ALL[v],
+        ),
         Param::bool(
             "use_features",
             "Use albedo, normal and depth when the frame has them (the full model); false \
@@ -224,6 +231,7 @@ impl Register for GradNetConfig {
             self.noise_band,
             self.band_trim,
             self.band_emitters,
+            self.band_scope,
         ));
         #[cfg(not(feature = "gradnet"))]
         {
