@@ -54,7 +54,8 @@
 //! the variance estimate undershoots (dark pixels whose few samples were all 0). On the test
 //! split, evaluated once: FRGR -5 to +0.2 %, GradNet -2 to -7 %, L1 -0.1 to -0.2 %; the frames
 //! that lose to their base there (bulbs in view, sub-pixel wires) lose less but still lose.
-//! Its cost is one pass over the frame (11 ms at 1280 x 720, 2 threads). The band trusts the
+//! Its cost is one pass over the frame (26 ms at 1280 x 720, 2 threads, AMD EPYC; 29-37 ms
+//! with edge trimming: `docs/bench/720p/`, thirty-third session). The band trusts the
 //! variance layer: a layer of zeros makes the output the base image.
 
 use rayon::prelude::*;
