@@ -123,7 +123,10 @@ fn filter_drops_qp_terms_whose_weight_vanishes_at_very_high_spp() {
 
 #[test]
 fn filter_without_features_skips_their_terms_and_prefilter() {
-    let config = MethodConfig::Frgr(FrgrConfig::default());
+    // The sample has 16 spp, where the prefilter runs only when asked to.
+    let mut frgr = FrgrConfig::default();
+    frgr.prefilter_below = 1e9;
+    let config = MethodConfig::Frgr(frgr);
     let (_, with) = run(&sample(), config.clone());
     assert!(stage(&with, "feature prefilter") > 0.0, "{:?}", with.stages);
     assert!(!with.skipped.iter().any(|s| s.contains("prefilter")));

@@ -18,7 +18,7 @@ use rayon::prelude::*;
 
 use super::band::{self, banded, BandScope, BAND_TRIM, NOISE_BAND};
 use super::converged::converged_mask;
-use super::param::{choices, Param, Params, Preset};
+use super::param::{choices, Param, Params, Preset, Range};
 use super::poisson_l1::{l1_memory, PoissonL1};
 use super::prior::{prior_memory, Prior, Quality};
 use super::{bytes_for, Method, PoissonL1Config, Reconstructor, Register, MIB};
@@ -72,6 +72,9 @@ pub struct FrgrConfig {
     pub guide: FrgrGuide,
     /// Prefilter albedo and normal before every stage reads them.
     pub prefilter: bool,
+    /// ... on frames of fewer samples per pixel than this only (default 16: from 16 spp the
+    /// prefilter's noise bound blurs curved surfaces more than it denoises; 1e9: always).
+    pub prefilter_below: f32,
     /// Window radius of the RDFC guide's candidate filters (10, 21 x 21, in the release).
     pub rdfc_radius: usize,
     /// Half-width of the noise band the output is clamped to, in standard deviations of the
@@ -94,6 +97,7 @@ impl Default for FrgrConfig {
             enhance_iterations: 250,
             guide: FrgrGuide::Rdfc,
             prefilter: true,
+            prefilter_below: PREFILTER_BELOW,
             rdfc_radius: rdfc::RADIUS,
             noise_band: NOISE_BAND,
             band_trim: BAND_TRIM,
@@ -110,6 +114,7 @@ impl FrgrConfig {
         FrgrConfig {
             enhance_iterations: REFERENCE_ENHANCE_ITERATIONS,
             noise_band: 0.0,
+            prefilter_below: PREFILTER_ALWAYS,
             ..FrgrConfig::default()
         }
     }
@@ -173,6 +178,16 @@ impl Params for FrgrConfig {
             |c| c.prefilter,
             |c, v| c.prefilter = v,
         ),
+        Param::float(
+            "prefilter_below",
+            Range::closed(0.0, PREFILTER_ALWAYS as f64),
+            "With prefilter, prefilter only frames of fewer spp than this: from 16 spp the \
+             features are clean enough, and the prefilter's noise bound blurs curved surfaces \
+             and edges (validation -0.4 / -0.6 % relMSE at 16 / 64 spp without it, +2.2 % at \
+             4); 1e9: always, as the release",
+            |c| c.prefilter_below,
+            |c, v| c.prefilter_below = v,
+        ),
         band::param(|c| c.noise_band, |c, v| c.noise_band = v),
         band::trim_param(|c| c.band_trim, |c, v| c.band_trim = v),
         band::emitters_param(|c| c.band_emitters, |c, v| c.band_emitters = v),
@@ -184,8 +199,8 @@ impl Params for FrgrConfig {
 
     const PRESETS: &'static [Preset<Self>] = &[Preset {
         name: "reference",
-        doc: "the release's schedule literally: 1000 gradient-enhancement iterations, no noise \
-              band",
+        doc: "the release's schedule literally: 1000 gradient-enhancement iterations, the \
+              prefilter at any spp, no noise band",
         config: FrgrConfig::reference,
     }];
 }
@@ -249,6 +264,21 @@ const FRGR_BYTES_PER_PIXEL: u64 = 320;
 
 /// The release's gradient-enhancement iterations.
 const REFERENCE_ENHANCE_ITERATIONS: u32 = 1000;
+
+/// Default `prefilter_below`: the feature prefilter runs below 16 spp only. Its noise bound
+/// (`prefilter.rs`: the 3 x 3 range over spp) mistakes a curved surface or an edge for noise
+/// and blends it, which the features' own noise no longer pays for at 16 spp. Chosen on
+/// validation by the band's rule (geometric means at most +0.5 %, every frame at most +2 %):
+/// without the prefilter 16 spp 0.996x (worst 1.015), 64 spp 0.994x (1.004), 4 spp 1.022x
+/// (1.096), so 16. On the guard frame `lamps_16spp` (a black sphere with small lamps: one
+/// albedo, normals that curve) FRGR goes from 1.21x its base to 0.39x. Test, read once after
+/// the choice: 16 spp 0.942x, 64 spp 0.981x (no frame above 1.005x); new renders of the test
+/// families 0.970x / 0.990x at 16 / 64 spp (worst 1.008x), and 1.037x on one older 16 spp one
+/// (`docs/benchmarks.md`, thirty-third session).
+const PREFILTER_BELOW: f32 = 16.0;
+
+/// `prefilter_below` that prefilters every frame (the release).
+const PREFILTER_ALWAYS: f32 = 1e9;
 
 /// Largest input magnitude FRGR runs at; larger frames are scaled down.
 const LIMIT: f32 = 1e6;
@@ -611,6 +641,12 @@ impl Reconstructor for Frgr {
             (None, None)
         } else if !self.cfg.prefilter {
             report.skip("feature prefilter (turned off)");
+            (albedo.map(Cow::Borrowed), normal.map(Cow::Borrowed))
+        } else if spp >= self.cfg.prefilter_below {
+            report.skip(format!(
+                "feature prefilter ({spp} spp, prefilter_below = {})",
+                self.cfg.prefilter_below
+            ));
             (albedo.map(Cow::Borrowed), normal.map(Cow::Borrowed))
         } else {
             report.note(format!(
