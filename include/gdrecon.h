@@ -332,6 +332,10 @@ gdr_error gdr_filter_new(gdr_context *ctx, const char *method, gdr_filter **out)
 gdr_error gdr_filter_retain(gdr_filter *filter);
 
 // Drop the reference `*filter` and set `*filter` to NULL (no-op when `*filter` is NULL); the last one frees the filter.
+//
+// After a cancelled execute of a prior path, the last release waits for Open Image Denoise's
+// operation in flight to end (at most 0.35 s at 1280 x 720 on two cores; see
+// `gdr_filter_cancel`).
 gdr_error gdr_filter_release(gdr_filter **filter);
 
 // Reset every parameter of the filter's method to one of its presets (`"prior"`, `"fast"`, `"published"` for `"l1"`; docs/PARAMETERS.md and `gdrecon params` list them); `"spp"` and `"strict"` are kept.
@@ -409,7 +413,8 @@ gdr_error gdr_filter_execute(gdr_filter *filter);
 // Every method returns within about 60 ms of the cancel at 1280 x 720. Open Image Denoise
 // (the prior paths) stops only between its operations, up to 0.35 s apart: the execute
 // returns at once, OIDN finishes its operation in the background on buffers the filter owns
-// (none of the caller's), and the filter's next execute waits for it (cancellably).
+// (none of the caller's); the filter's next execute waits for it (cancellably), and so does
+// its last release, so that nothing of a released filter goes on running.
 gdr_error gdr_filter_cancel(gdr_filter *filter);
 
 // Point `*text` at the report of the last successful execute ("" before the first); valid until the next execute or release.

@@ -289,6 +289,10 @@ pub unsafe extern "C" fn gdr_filter_retain(filter: *mut gdr_filter) -> gdr_error
 }
 
 /// Drop the reference `*filter` and set `*filter` to NULL (no-op when `*filter` is NULL); the last one frees the filter.
+///
+/// After a cancelled execute of a prior path, the last release waits for Open Image Denoise's
+/// operation in flight to end (at most 0.35 s at 1280 x 720 on two cores; see
+/// `gdr_filter_cancel`).
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_release(filter: *mut *mut gdr_filter) -> gdr_error {
     guard("gdr_filter_release", || {
@@ -639,7 +643,8 @@ pub unsafe extern "C" fn gdr_filter_execute(filter: *mut gdr_filter) -> gdr_erro
 /// Every method returns within about 60 ms of the cancel at 1280 x 720. Open Image Denoise
 /// (the prior paths) stops only between its operations, up to 0.35 s apart: the execute
 /// returns at once, OIDN finishes its operation in the background on buffers the filter owns
-/// (none of the caller's), and the filter's next execute waits for it (cancellably).
+/// (none of the caller's); the filter's next execute waits for it (cancellably), and so does
+/// its last release, so that nothing of a released filter goes on running.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_cancel(filter: *mut gdr_filter) -> gdr_error {
     guard("gdr_filter_cancel", || {

@@ -1246,6 +1246,9 @@ impl Reconstructor for PoissonL1 {
                         // Unit weights: the DCT solves the system itself (CG then checks it).
                         self.x.copy_from_slice(&self.b);
                         dct.solve(&mut self.x);
+                        // The DCT solve takes 30 ms at 1280 x 720 on two cores: a cancel
+                        // meanwhile is seen here, not after the first CG iteration as well.
+                        at(0.0)?;
                     }
                     (bb, self.residual())
                 }
