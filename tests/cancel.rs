@@ -8,7 +8,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-use gdrecon::{synth, Context, ContextOptions, Error, Method, MethodConfig, Plan, Progress};
+use gdrecon::{
+    synth, Context, ContextOptions, Error, Frame, Image, Method, MethodConfig, Plan, Progress,
+    Report,
+};
 
 /// Three times the target (100 ms): a loaded CI machine must not fail on noise, but a method
 /// that waits for an operation of its own (OIDN's longest takes 0.35 s here) must.
@@ -17,6 +20,28 @@ const BOUND: Duration = Duration::from_millis(300);
 /// Held by each test for its whole run: the harness runs tests in parallel, and a latency
 /// measured while the other test keeps both cores busy measures the machine's load.
 static ALONE: Mutex<()> = Mutex::new(());
+
+/// Executes `plan` on `frame` while another thread sets its cancel flag after `delay`: the
+/// result, and the time from the flag to the return (0 when it returned first).
+fn execute_cancelled_after(
+    plan: &mut Plan,
+    frame: &Frame,
+    delay: Duration,
+) -> (gdrecon::Result<(Image, Report)>, Duration) {
+    let flag = AtomicBool::new(false);
+    let progress = Progress::none().with_cancel(&flag);
+    std::thread::scope(|s| {
+        let set_at = s.spawn(|| {
+            std::thread::sleep(delay);
+            flag.store(true, Ordering::SeqCst);
+            Instant::now()
+        });
+        let result = plan.execute(frame, &progress);
+        let returned = Instant::now();
+        let set_at = set_at.join().unwrap();
+        (result, returned.saturating_duration_since(set_at))
+    })
+}
 
 #[test]
 fn every_method_returns_promptly_after_a_cancel_at_720p() {
@@ -32,19 +57,8 @@ fn every_method_returns_promptly_after_a_cancel_at_720p() {
         };
         let mut latencies = Vec::new();
         for delay_ms in [30u64, 250, 700] {
-            let flag = AtomicBool::new(false);
-            let progress = Progress::none().with_cancel(&flag);
-            let (result, latency) = std::thread::scope(|s| {
-                let set_at = s.spawn(|| {
-                    std::thread::sleep(Duration::from_millis(delay_ms));
-                    flag.store(true, Ordering::SeqCst);
-                    Instant::now()
-                });
-                let result = plan.execute(&frame, &progress);
-                let returned = Instant::now();
-                let set_at = set_at.join().unwrap();
-                (result, returned.saturating_duration_since(set_at))
-            });
+            let delay = Duration::from_millis(delay_ms);
+            let (result, latency) = execute_cancelled_after(&mut plan, &frame, delay);
             match result {
                 Err(Error::Cancelled) => latencies.push(latency),
                 // Finished before the cancel: nothing to measure at this delay.
@@ -88,18 +102,11 @@ fn an_execute_after_a_cancel_gives_the_uncancelled_image() {
         let mut plan = Plan::new(&context, &config, 320, 192).unwrap();
         // Twice: a cancel at once, then one in the middle of the work.
         for delay_ms in [0u64, 20] {
-            let flag = AtomicBool::new(false);
-            let progress = Progress::none().with_cancel(&flag);
-            std::thread::scope(|s| {
-                s.spawn(|| {
-                    std::thread::sleep(Duration::from_millis(delay_ms));
-                    flag.store(true, Ordering::SeqCst);
-                });
-                match plan.execute(&frame, &progress) {
-                    Ok(_) | Err(Error::Cancelled) => {}
-                    Err(e) => panic!("{method}: {e}"),
-                }
-            });
+            let delay = Duration::from_millis(delay_ms);
+            match execute_cancelled_after(&mut plan, &frame, delay).0 {
+                Ok(_) | Err(Error::Cancelled) => {}
+                Err(e) => panic!("{method}: {e}"),
+            }
         }
         let (got, _) = plan.execute(&frame, &Progress::none()).unwrap();
         assert!(
@@ -145,19 +152,12 @@ fn a_released_plan_leaves_nothing_running() {
         let mut plan = Plan::new(&context, &config, 1280, 720).unwrap();
         // A first run loads OIDN and commits the filter: the cancelled one is all denoising.
         plan.execute(&frame, &Progress::none()).unwrap();
-        let flag = AtomicBool::new(false);
-        let progress = Progress::none().with_cancel(&flag);
-        std::thread::scope(|s| {
-            s.spawn(|| {
-                std::thread::sleep(Duration::from_millis(delay_ms));
-                flag.store(true, Ordering::SeqCst);
-            });
-            let result = plan.execute(&frame, &progress);
-            assert!(
-                matches!(result, Err(Error::Cancelled)),
-                "not cancelled at {delay_ms} ms"
-            );
-        });
+        let delay = Duration::from_millis(delay_ms);
+        let (result, _) = execute_cancelled_after(&mut plan, &frame, delay);
+        assert!(
+            matches!(result, Err(Error::Cancelled)),
+            "not cancelled at {delay_ms} ms"
+        );
         drop(plan);
         let before = cpu_time();
         std::thread::sleep(Duration::from_millis(300));

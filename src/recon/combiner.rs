@@ -468,7 +468,7 @@ mod enabled {
             })?;
             let candidates = candidates(&config);
             Ok(Combiner {
-                prior: Prior::new(context, width, height, Quality::High),
+                prior: Prior::new(context, width, height, Quality::High)?,
                 solve: PoissonL1::new_for(&candidates, width, height)?,
                 candidates,
                 outputs: [

@@ -435,7 +435,7 @@ impl Register for PoissonL1Config {
                     ..*self
                 };
                 let inner = Box::new(PoissonL1::new(anchored, width, height)?);
-                Box::new(OnPrior::new(context, width, height, inner))
+                Box::new(OnPrior::new(context, width, height, inner)?)
             }
         };
         Ok(banded(

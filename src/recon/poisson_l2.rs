@@ -97,7 +97,7 @@ impl Register for PoissonL2Config {
                     ..*self
                 };
                 let inner = Box::new(PoissonL2::new(anchored, width, height)?);
-                Box::new(OnPrior::new(context, width, height, inner))
+                Box::new(OnPrior::new(context, width, height, inner)?)
             }
         })
     }

@@ -319,7 +319,8 @@ impl Frgr {
             FrgrGuide::Rdfc | FrgrGuide::Colour | FrgrGuide::Prior => None,
         };
         let prior = (config.guide == FrgrGuide::Prior)
-            .then(|| Prior::new(context, width, height, Quality::High));
+            .then(|| Prior::new(context, width, height, Quality::High))
+            .transpose()?;
         Ok(Frgr {
             levels: level_sizes(width, height, config.levels),
             cfg: config,

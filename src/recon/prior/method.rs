@@ -57,7 +57,7 @@ impl Register for PriorConfig {
             width,
             height,
             self.quality,
-        ))))
+        )?)))
     }
 
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {

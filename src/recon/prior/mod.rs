@@ -107,11 +107,11 @@ impl OnPrior {
         width: usize,
         height: usize,
         inner: Box<dyn Reconstructor>,
-    ) -> Self {
-        OnPrior {
-            prior: Prior::new(context, width, height, Quality::High),
+    ) -> Result<Self> {
+        Ok(OnPrior {
+            prior: Prior::new(context, width, height, Quality::High)?,
             inner,
-        }
+        })
     }
 }
 
@@ -160,19 +160,33 @@ pub(crate) struct Prior {
     /// OIDN's filter and the planar image it writes, made on the first frame without a prior.
     #[cfg(feature = "oidn")]
     computed: Option<(oidn::Runner, Image)>,
+    /// The filter's buffers and that image, made by the plan, until the first frame takes them.
+    #[cfg(feature = "oidn")]
+    made: Option<(oidn::Buffers, Image)>,
 }
 
 impl Prior {
-    /// A prior source for `width` x `height` frames; loads nothing yet.
-    pub(crate) fn new(context: &Context, width: usize, height: usize, quality: Quality) -> Self {
-        Prior {
+    /// A prior source for `width` x `height` frames: OIDN's buffers are made here, the library
+    /// is loaded by the first frame without a prior.
+    pub(crate) fn new(
+        context: &Context,
+        width: usize,
+        height: usize,
+        quality: Quality,
+    ) -> Result<Self> {
+        Ok(Prior {
             context: context.clone(),
             quality,
             width,
             height,
             #[cfg(feature = "oidn")]
             computed: None,
-        }
+            #[cfg(feature = "oidn")]
+            made: Some((
+                oidn::Buffers::new(width, height)?,
+                Image::try_zeros(3, width, height)?,
+            )),
+        })
     }
 
     /// The frame's prior: its `prior` layer when it has one, else OIDN's output on its base
@@ -209,8 +223,15 @@ impl Prior {
                 Quality::Balanced => oidn::QUALITY_BALANCED,
                 Quality::Fast => oidn::QUALITY_FAST,
             };
-            let filter = oidn::Filter::new(device, self.width, self.height, quality)?;
-            let image = Image::try_zeros(3, self.width, self.height)?;
+            // A lost runner took its buffers with it: new ones (rare: a thread that died).
+            let (buffers, image) = match self.made.take() {
+                Some(made) => made,
+                None => (
+                    oidn::Buffers::new(self.width, self.height)?,
+                    Image::try_zeros(3, self.width, self.height)?,
+                ),
+            };
+            let filter = oidn::Filter::new(device, buffers, quality);
             self.computed = Some((oidn::Runner::new(filter), image));
         }
         let (runner, image) = self.computed.as_mut().expect("made above");
