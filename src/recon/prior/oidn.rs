@@ -279,7 +279,7 @@ impl Drop for Device {
 
 /// A [`Filter`]'s interleaved RGB buffers for `width` x `height` images (48 bytes a pixel):
 /// made by a plan, before OIDN is loaded, so that their 44 MB at 1280 x 720 are written (20-30
-/// ms, once up to 190 ms) while planning, not in a first execute that a cancel cannot stop.
+/// ms, in some runs 140-190 ms) while planning, not in a first execute that a cancel cannot stop.
 pub(crate) struct Buffers {
     width: usize,
     height: usize,
@@ -313,13 +313,8 @@ pub(crate) struct Filter {
     /// Null until the first run.
     handle: Handle,
     quality: c_int,
-    width: usize,
-    height: usize,
     /// Interleaved RGB: colour, albedo, normal, output.
-    colour: Vec<f32>,
-    albedo: Vec<f32>,
-    normal: Vec<f32>,
-    output: Vec<f32>,
+    buffers: Buffers,
     /// Which auxiliary images the filter was last committed with.
     committed: Option<(bool, bool)>,
     /// Read by the progress monitor: set to stop the run in flight (shared with the thread
@@ -334,24 +329,11 @@ unsafe impl Send for Filter {}
 impl Filter {
     /// A filter on `device` for the images `buffers` were made for (OIDN is not called).
     pub(crate) fn new(device: std::sync::Arc<Device>, buffers: Buffers, quality: c_int) -> Self {
-        let Buffers {
-            width,
-            height,
-            colour,
-            albedo,
-            normal,
-            output,
-        } = buffers;
         Filter {
             device,
             handle: std::ptr::null_mut(),
             quality,
-            width,
-            height,
-            colour,
-            albedo,
-            normal,
-            output,
+            buffers,
             committed: None,
             stop: Arc::new(AtomicBool::new(false)),
         }
@@ -393,7 +375,8 @@ impl Filter {
 
     /// The interleaved input buffers to fill (colour, albedo, normal), each `3 * w * h`.
     pub(crate) fn inputs(&mut self) -> (&mut [f32], &mut [f32], &mut [f32]) {
-        (&mut self.colour, &mut self.albedo, &mut self.normal)
+        let b = &mut self.buffers;
+        (&mut b.colour, &mut b.albedo, &mut b.normal)
     }
 
     /// Denoises the colour buffer (with the albedo and normal buffers when asked) into the
@@ -404,7 +387,7 @@ impl Filter {
             self.create()?;
         }
         let api = &self.device.lib.api;
-        let (w, h) = (self.width, self.height);
+        let (w, h) = (self.buffers.width, self.buffers.height);
         let stride = 3 * std::mem::size_of::<f32>();
         if self.committed != Some((albedo, normal)) {
             let handle = self.handle;
@@ -425,11 +408,11 @@ impl Filter {
                     )
                 }
             };
-            set("color", self.colour.as_mut_ptr());
-            set("output", self.output.as_mut_ptr());
+            set("color", self.buffers.colour.as_mut_ptr());
+            set("output", self.buffers.output.as_mut_ptr());
             for (name, wanted, buffer) in [
-                ("albedo", albedo, self.albedo.as_mut_ptr()),
-                ("normal", normal, self.normal.as_mut_ptr()),
+                ("albedo", albedo, self.buffers.albedo.as_mut_ptr()),
+                ("normal", normal, self.buffers.normal.as_mut_ptr()),
             ] {
                 if wanted {
                     set(name, buffer);
@@ -515,7 +498,7 @@ impl Runner {
         if !progress.can_stop() {
             let filter = self.idle.as_mut().ok_or_else(lost)?;
             filter.execute(albedo, normal)?;
-            return Ok(&filter.output);
+            return Ok(&filter.buffers.output);
         }
         progress.check()?;
         let mut filter = self.idle.take().ok_or_else(lost)?;
@@ -538,7 +521,7 @@ impl Runner {
             Ok((filter, result)) => {
                 let filter = self.idle.insert(filter);
                 result?;
-                Ok(&filter.output)
+                Ok(&filter.buffers.output)
             }
             Err(Error::Cancelled) => {
                 stop.store(true, Ordering::Relaxed);
