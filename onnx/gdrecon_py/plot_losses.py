@@ -12,6 +12,12 @@ colour, the moving average over 20 steps in full colour; one colour per run.
 `--curve` (runs of gdrecon_py/train_gradnet.py, which validate after every epoch): the validation
 relMSE (geometric mean over the frames of each spp) against the epoch, log y, one colour per spp,
 with `--ref` levels (L1's geometric means, say) as thin lines of the same colour.
+
+    $GDRECON_PYTHON -m gdrecon_py.plot_losses RUN_A RUN_B ... --compare -o docs/gradnet_ablation.png \
+        --labels shipped,no-augmentation,...
+
+`--compare` (train_gradnet.py runs, an ablation): one panel per spp and one for all frames, the
+validation relMSE against the epoch, one colour per run.
 """
 import argparse
 import json
@@ -80,9 +86,13 @@ def panel(draw, box, title, series, log_y=True, smooth_n=20, xlabel="steps"):
             draw.line([(tx(i), ty(v)) for i, v in enumerate(smooth(ys, smooth_n))], fill=color, width=2)
 
 
-def curve(run, out, refs):
+def val_epochs(run):
     rows = [json.loads(line) for line in open(os.path.join(run, "log.jsonl"))]
-    ep = [r for r in rows if r.get("kind") == "epoch" and "val" in r]
+    return [r for r in rows if r.get("kind") == "epoch" and "val" in r]
+
+
+def curve(run, out, refs):
+    ep = val_epochs(run)
     spps = sorted({float(k) for r in ep for k in r["val_by_spp"]})
     W, H = 900, 560
     img = Image.new("RGB", (W, H), (255, 255, 255))
@@ -103,6 +113,30 @@ def curve(run, out, refs):
     print(f"wrote {out}")
 
 
+def compare(runs, labels, out):
+    eps = [val_epochs(r) for r in runs]
+    spps = sorted({k for ep in eps for r in ep for k in r["val_by_spp"]}, key=float)
+    W, H = 1200, 420
+    img = Image.new("RGB", (W, H), (255, 255, 255))
+    d = ImageDraw.Draw(img)
+    n = len(spps) + 1
+    pw = (W - 10 * (n + 1)) // n
+    boxes = [(10 + i * (pw + 10), 40, 10 + i * (pw + 10) + pw, H - 10) for i in range(n)]
+    for b, k in zip(boxes, spps):
+        panel(d, b, f"validation relMSE, {float(k):g} spp (geometric mean)",
+              [(COLORS[i % 4], [r["val_by_spp"][k] for r in ep]) for i, ep in enumerate(eps)],
+              smooth_n=1, xlabel="epochs")
+    panel(d, boxes[-1], "validation relMSE, all frames",
+          [(COLORS[i % 4], [r["val"] for r in ep]) for i, ep in enumerate(eps)], smooth_n=1, xlabel="epochs")
+    x = 10
+    for i, lab in enumerate(labels):
+        d.rectangle([x, 14, x + 14, 26], fill=COLORS[i % 4])
+        d.text((x + 20, 14), lab, fill=(0, 0, 0))
+        x += 30 + 7 * len(lab)
+    img.save(out)
+    print(f"wrote {out}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("runs", nargs="+")
@@ -110,13 +144,17 @@ def main(argv=None):
     ap.add_argument("--labels", help="comma-separated legend labels")
     ap.add_argument("--curve", action="store_true", help="validation curve of one train_gradnet run")
     ap.add_argument("--ref", default="", help="spp=relMSE,... levels drawn with --curve")
+    ap.add_argument("--compare", action="store_true", help="validation curves of several train_gradnet runs")
     args = ap.parse_args(argv)
+    labels = args.labels.split(",") if args.labels else [os.path.basename(r.rstrip("/")) for r in args.runs]
+    if args.compare:
+        compare(args.runs, labels, args.out)
+        return
     if args.curve:
         refs = {float(k): float(v) for k, v in (kv.split("=") for kv in args.ref.split(",") if kv)}
         curve(args.runs[0], args.out, refs)
         return
     data = [load(r) for r in args.runs]
-    labels = args.labels.split(",") if args.labels else [os.path.basename(r.rstrip("/")) for r in args.runs]
     W, H = 1200, 760
     img = Image.new("RGB", (W, H), (255, 255, 255))
     d = ImageDraw.Draw(img)
