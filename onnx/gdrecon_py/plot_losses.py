@@ -86,6 +86,15 @@ def panel(draw, box, title, series, log_y=True, smooth_n=20, xlabel="steps"):
             draw.line([(tx(i), ty(v)) for i, v in enumerate(smooth(ys, smooth_n))], fill=color, width=2)
 
 
+def legend(draw, labels):
+    """One colour swatch and label per run along the top edge."""
+    x = 10
+    for i, lab in enumerate(labels):
+        draw.rectangle([x, 14, x + 14, 26], fill=COLORS[i % 4])
+        draw.text((x + 20, 14), lab, fill=(0, 0, 0))
+        x += 30 + 7 * len(lab)
+
+
 def val_epochs(run):
     rows = [json.loads(line) for line in open(os.path.join(run, "log.jsonl"))]
     return [r for r in rows if r.get("kind") == "epoch" and "val" in r]
@@ -128,11 +137,7 @@ def compare(runs, labels, out):
               smooth_n=1, xlabel="epochs")
     panel(d, boxes[-1], "validation relMSE, all frames",
           [(COLORS[i % 4], [r["val"] for r in ep]) for i, ep in enumerate(eps)], smooth_n=1, xlabel="epochs")
-    x = 10
-    for i, lab in enumerate(labels):
-        d.rectangle([x, 14, x + 14, 26], fill=COLORS[i % 4])
-        d.text((x + 20, 14), lab, fill=(0, 0, 0))
-        x += 30 + 7 * len(lab)
+    legend(d, labels)
     img.save(out)
     print(f"wrote {out}")
 
@@ -169,11 +174,7 @@ def main(argv=None):
                                           for i, (_, g) in enumerate(data) if g])
     lam = [(COLORS[i % 4], [r["lambda"] for r in m]) for i, (m, _) in enumerate(data)]
     panel(d, boxes[5], "lambda_F schedule (linear y)", lam, log_y=False)
-    x = 10
-    for i, lab in enumerate(labels):
-        d.rectangle([x, 14, x + 14, 26], fill=COLORS[i % 4])
-        d.text((x + 20, 14), lab, fill=(0, 0, 0))
-        x += 30 + 7 * len(lab)
+    legend(d, labels)
     img.save(args.out)
     print(f"wrote {args.out}")
 
