@@ -1,0 +1,83 @@
+"""Fine-tuning against references (gdrecon_py.qat_ref): the crops keep the reference aligned
+with the noisy frame through every augmentation, and the loss is the one its docstring states."""
+import math
+
+import pytest
+import torch
+
+from gdrecon_py import gradnet as gn
+from gdrecon_py import qat, qat_ref
+
+
+def frames(n=3, h=40, w=40, seed=0):
+    """n x 19 x h x w: the reference a known function of the colour (2 x colour + 0.1), the
+    gradients the colour's forward differences (last column / row 0, as rendered)."""
+    g = torch.Generator().manual_seed(seed)
+    col = torch.rand(n, 3, h, w, generator=g)
+    dx = torch.zeros_like(col)
+    dx[..., :-1] = col[..., 1:] - col[..., :-1]
+    dy = torch.zeros_like(col)
+    dy[..., :-1, :] = col[..., 1:, :] - col[..., :-1, :]
+    feat = torch.rand(n, 7, h, w, generator=g)
+    return torch.cat([col, dx, dy, feat, 2 * col + 0.1], 1)
+
+
+def test_crops_keep_the_reference_aligned_and_exposed_alike():
+    arr = frames()
+    gen = torch.Generator().manual_seed(3)
+    for _ in range(4):
+        x = qat_ref.sample(arr, gen, 8, 24, exposure=2.0)
+        col, dx, dy, ref = x[:, 0:3], x[:, 3:6], x[:, 6:9], x[:, 16:19]
+        # exposure s: ref' = s (2 c + 0.1) and c' = s c, so ref' - 2 c' = 0.1 s, one s per crop
+        s = (ref - 2 * col) / 0.1
+        assert torch.allclose(s, s[:, :1, :1, :1].expand_as(s), rtol=1e-4, atol=1e-4)
+        assert float(s.min()) >= 0.25 - 1e-4 and float(s.max()) <= 4.0 + 1e-4
+        # gradients stay the colour's forward differences after rotations and mirrors
+        assert torch.allclose(dx[..., :-1], col[..., 1:] - col[..., :-1], atol=1e-5)
+        assert torch.allclose(dy[..., :-1, :], col[..., 1:, :] - col[..., :-1, :], atol=1e-5)
+
+
+def _nets():
+    torch.manual_seed(0)
+    net = gn.GradNet().eval()
+    ranges = {k: (0.01, 10) for k in qat.ACT_NAMES}
+    return qat.QATGradNet(net, ranges), net
+
+
+def test_loss_is_the_teacher_weighted_relmse():
+    from gdrecon_py.mulaw import mulaw_inv
+    from gdrecon_py.train import split_batch
+    student, teacher = _nets()
+    x = qat_ref.sample(frames(), torch.Generator().manual_seed(1), 2, 32, exposure=0.0)
+    data, grad = split_batch(x[:, :16])[:2]
+    with torch.no_grad():
+        lt = mulaw_inv(teacher(data, grad))
+        ly = mulaw_inv(student(data, grad))
+    ref = x[:, 16:19].reshape(lt.shape)
+    w = 1 / (lt ** 2 + 0.01)
+    want = float(((ly - ref) ** 2 * w).mean() + 0.5 * ((ly - lt) ** 2 * w).mean())
+    with torch.no_grad():
+        got = float(qat_ref.loss_of(student, teacher, x, dist=0.5, clip=0.0))
+    assert math.isclose(got, want, rel_tol=1e-5)
+    # the cap bounds every pixel's term
+    with torch.no_grad():
+        capped = float(qat_ref.loss_of(student, teacher, x, dist=0.0, clip=1e-3))
+    assert capped <= 1e-3 + 1e-9
+    # the student switched to fp32 against references equal to the teacher: nothing to learn
+    student.quant = False
+    y = x.clone()
+    y[:, 16:19] = lt.reshape(2, 3, 32, 32)
+    with torch.no_grad():
+        assert float(qat_ref.loss_of(student, teacher, y, dist=1.0, clip=0.0)) < 1e-12
+
+
+def test_schedule_warms_up_then_decays_to_zero():
+    assert qat_ref.lr_at(0, 300, 1e-5, 20) == pytest.approx(1e-5 / 20)
+    assert qat_ref.lr_at(19, 300, 1e-5, 20) <= 1e-5
+    assert qat_ref.lr_at(150, 300, 1e-5, 20) == pytest.approx(0.5e-5)
+    assert qat_ref.lr_at(299, 300, 1e-5, 20) < 1e-9
+
+
+def test_an_empty_folder_is_refused(tmp_path):
+    with pytest.raises(SystemExit, match="no bundles"):
+        qat_ref.load_frames(str(tmp_path), set())
