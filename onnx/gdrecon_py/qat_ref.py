@@ -184,13 +184,14 @@ def main(argv=None):
         log.flush()
         print(json.dumps({k: v for k, v in rec.items() if k != "rows"}), flush=True)
 
+    teacher_sha, start_sha = sha256_file(args.teacher), sha256_file(args.start)
+
     def save():
         ck = {"net": student.net.state_dict(), "opt": opt.state_dict(), "sampler_rng": gen.get_state(),
               "step": step, "total": args.steps, "elapsed": elapsed, "args": vars(args),
-              "model_sha256": sha256_file(args.teacher), "start_sha256": sha256_file(args.start),
-              "frames": names, "device_name": "cpu",
+              "model_sha256": teacher_sha, "start_sha256": start_sha, "frames": names, "device_name": "cpu",
               "fine_tuned": f"quantisation-aware (gdrecon_py.qat_ref) against {len(names)} bundles' "
-                            f"references and the fp32 graph, from an int8 graph (sha256 {sha256_file(args.start)})"}
+                            f"references and the fp32 graph, from an int8 graph (sha256 {start_sha})"}
         torch.save(ck, last + ".tmp")
         os.replace(last + ".tmp", last)
 
