@@ -217,6 +217,11 @@ class QATGradNet(nn.Module):
         self.register_buffer("zps", z)
         self._index = {k: i for i, k in enumerate(ACT_NAMES)}
 
+    @property
+    def data_ch(self):
+        """The wrapped network's data channels (what `pipeline.torch_runner` reads)."""
+        return self.net.data_ch
+
     def _a(self, x, name):
         if not self.quant:
             return x

@@ -47,7 +47,6 @@ import torch
 from . import ONNX_DIR
 from . import pipeline as pl
 from . import qat
-from .metrics import relmse
 from .mulaw import mulaw_inv
 
 PLANES = 19     # colour, dx, dy (3 each), the 7 normalised features, reference (3)
@@ -55,18 +54,19 @@ PLANES = 19     # colour, dx, dy (3 each), the 7 normalised features, reference 
 
 def load_frames(folder, skip):
     """Every bundle with a reference in `folder`, sorted by name, families in `skip` left out ->
-    N x 19 x H x W float32 (sanitised and normalised as inference prepares a frame)."""
+    N x 19 x H x W float32: the training planes inference would prepare (`pack.train_planes`)
+    and the reference."""
+    from .pack import train_planes
     frames, names = [], []
     for f in sorted(glob.glob(os.path.join(folder, "*.exr"))):
         name = os.path.basename(f)
         if name.split("_")[0] in skip:
             continue
-        fr = pl.sanitize(pl.read_frame(f))
+        fr = pl.read_frame(f)
         if fr.get("reference") is None:
             raise SystemExit(f"{f}: no reference layer (render with --ref-spp)")
-        feat = pl.normalize_features(fr["albedo"], fr["normal"], fr["depth"])
         ref = np.nan_to_num(fr["reference"].astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        frames.append(np.concatenate([fr["color"], fr["dx"], fr["dy"], feat, ref], -1).transpose(2, 0, 1))
+        frames.append(np.concatenate([train_planes(fr), ref.transpose(2, 0, 1)]))
         names.append(name)
     if not frames:
         raise SystemExit(f"{folder}: no bundles")
@@ -110,23 +110,17 @@ def loss_of(student, teacher, x, dist, clip):
 
 
 def lr_at(step, total, lr, warmup):
+    """Linear warm-up times a cosine over the whole run (not `qat.lr_at`'s cosine after the
+    warm-up: the shipped weights were made with this one)."""
     return lr * min(1.0, (step + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * step / max(1, total)))
 
 
 def validate(student, frames):
-    """relMSE of the whole reference pipeline with the simulated int8 network, per frame, and
-    geometric means per spp and over all frames."""
-    def run(data, grad):
-        with torch.no_grad():
-            return student(torch.from_numpy(data), torch.from_numpy(grad)).numpy()
-    run.data_channels = 8
-    rows = {name: relmse(pl.reconstruct(fr, run), fr["reference"]) for name, fr in frames}
-    g = lambda sel: math.exp(sum(math.log(rows[k]) for k in sel) / len(sel))
-    rec = {"all": g(list(rows))}
-    for spp in sorted({int(k.rsplit("_", 1)[1].split("spp")[0]) for k in rows}):
-        rec[f"{spp}spp"] = g([k for k in rows if k.endswith(f"_{spp}spp.exr")])
-    rec["rows"] = rows
-    return rec
+    """`train_gradnet.validate` with the simulated int8 network: relMSE of the whole reference
+    pipeline per frame, geometric means per spp and over all frames."""
+    from .train_gradnet import validate as validate_net
+    score, geo, rows = validate_net(student, frames, "cpu")
+    return {"all": score, **{f"{k}spp": v for k, v in geo.items()}, "rows": rows}
 
 
 def main(argv=None):
@@ -165,8 +159,10 @@ def main(argv=None):
     for p in teacher.parameters():
         p.requires_grad_(False)
     opt = torch.optim.Adam(student.net.parameters(), lr=args.lr)
-    val = [(os.path.basename(f), pl.read_frame(f)) for f in sorted(glob.glob(os.path.join(args.val, "*.exr")))] \
-        if args.val else []
+    val = []
+    for f in sorted(glob.glob(os.path.join(args.val, "*.exr"))) if args.val else []:
+        fr = pl.read_frame(f)
+        val.append(({"file": os.path.basename(f), "spp": int(fr["spp"])}, fr))
 
     last = os.path.join(args.out, "last.pt")
     step, elapsed = 0, 0.0
@@ -219,9 +215,7 @@ def main(argv=None):
             elapsed, t0 = elapsed + time.time() - t0, time.time()
             save()
         if val and (step % args.val_every == 0 or step == args.steps):
-            student.eval()
             record({"kind": "val", "step": step, **validate(student, val)})
-            student.train()
             t0 = time.time()
     log.close()
 
