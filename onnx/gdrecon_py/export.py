@@ -372,6 +372,31 @@ def net_from_onnx(path):
     return net.eval()
 
 
+def provenance(ck, manifest=MANIFEST):
+    """How a checkpoint's weights were made, as the manifest records it: a training run's variant,
+    epochs, seconds and arguments; for a fine-tuning run (`qat_ref --fp32`: the checkpoint names
+    the graph it started from by `start_sha256`), the entry of that graph, looked up in the
+    manifest by its digest, with the fine-tuning appended to its `fine_tuned` list."""
+    if "start_sha256" not in ck:
+        return {"variant": ck.get("variant", "full"), "epochs_trained": ck["epoch"] + 1,
+                "train_seconds": round(ck.get("elapsed", 0.0)), "train_args": ck.get("args", {})}
+    if ck.get("precision", "fp32") != "fp32":
+        raise SystemExit("an int8 fine-tuning checkpoint: quantise it (python -m gdrecon_py.qat quantize)")
+    models = {}
+    if os.path.exists(manifest):
+        with open(manifest) as f:
+            models = json.load(f).get("models", {})
+    start = next((e for e in models.values() if e.get("sha256") == ck["start_sha256"]), None)
+    if start is None:
+        raise SystemExit(f"the graph the fine-tuning started from (sha256 {ck['start_sha256']}) "
+                         f"is not in {manifest}: its training is unknown")
+    keep = ("variant", "epochs_trained", "train_seconds", "train_args")
+    run = {"how": ck["fine_tuned"], "start_sha256": ck["start_sha256"], "teacher_sha256": ck.get("model_sha256"),
+           "steps": ck["step"], "seconds": round(ck.get("elapsed", 0.0)), "device": ck.get("device_name", "cpu"),
+           "args": ck.get("args", {})}
+    return {**{k: start[k] for k in keep if k in start}, "fine_tuned": list(start.get("fine_tuned", [])) + [run]}
+
+
 def update_manifest(entry, manifest=MANIFEST):
     d = {"models": {}}
     if os.path.exists(manifest):
@@ -395,10 +420,11 @@ def main(argv=None):
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
     net, ck = load_checkpoint(args.ckpt)
-    variant = ck.get("variant", "full")
-    tr = ck.get("args", {})
-    meta = {"variant": variant, "epochs_trained": ck["epoch"] + 1,
-            "train_seconds": round(ck.get("elapsed", 0.0)), "train_args": json.dumps(tr, sort_keys=True)}
+    prov = provenance(ck)
+    meta = {"variant": prov["variant"], "epochs_trained": prov["epochs_trained"],
+            "train_seconds": prov["train_seconds"], "train_args": json.dumps(prov["train_args"], sort_keys=True)}
+    if "fine_tuned" in prov:
+        meta["fine_tuned"] = json.dumps(prov["fine_tuned"], sort_keys=True)
     m = export_model(net, args.out, meta, deconv=args.deconv)
 
     # self-check with onnxruntime
@@ -421,12 +447,11 @@ def main(argv=None):
     with open(args.out + ".sha256", "w") as f:
         f.write(f"{digest}  {base}\n")
     dch = net.data_ch
-    entry = {"file": base, "sha256": digest, "bytes": os.path.getsize(args.out), "variant": variant,
+    entry = {"file": base, "sha256": digest, "bytes": os.path.getsize(args.out),
              "ir_version": m.ir_version, "opset": m.opset_import[0].version,
              "inputs": {"data": ["N", dch, "H", "W"], "grad": ["N", 2, "H", "W"]},
              "outputs": {"output": ["N", 1, "H", "W"]},
-             "epochs_trained": ck["epoch"] + 1, "train_seconds": round(ck.get("elapsed", 0.0)),
-             "train_args": tr, "parity_max_abs": worst, "deconv": args.deconv}
+             "parity_max_abs": worst, "deconv": args.deconv, **prov}
     update_manifest(entry)
     print(f"sha256 {digest}  {base}", flush=True)
 

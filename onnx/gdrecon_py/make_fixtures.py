@@ -22,9 +22,10 @@ export) and the numpy reference pipeline (gdrecon_py/pipeline.py):
                                 3 x 1 x Hp x Wp
   <crop>_int8_out.npy           pipeline.reconstruct with that graph (onnxruntime): H x W x 3
 
-Run (needs the checkpoints of docs/gradnet.md; takes a few seconds):
+Run (needs the checkpoints of docs/gradnet.md, or `--full` / `--nofeat` naming a checkpoint or
+an exported graph whose weights the torch model takes; takes a few seconds):
     source onnx/env.sh
-    $GDRECON_PYTHON -m gdrecon_py.make_fixtures
+    $GDRECON_PYTHON -m gdrecon_py.make_fixtures [--full RUN/last.pt] [--nofeat onnx/gradnet_nofeat.onnx]
 """
 import argparse
 import os
@@ -55,8 +56,8 @@ def crop(frame, y0, x0, h, w):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default=os.path.join(REPO, "tests", "fixtures", "gradnet"))
-    ap.add_argument("--full", default=os.path.join(RUNS, "full", "last.pt"))
-    ap.add_argument("--nofeat", default=os.path.join(RUNS, "nofeat", "last.pt"))
+    ap.add_argument("--full", default=os.path.join(RUNS, "full", "last.pt"), help="checkpoint or .onnx")
+    ap.add_argument("--nofeat", default=os.path.join(RUNS, "nofeat", "last.pt"), help="checkpoint or .onnx")
     ap.add_argument("--emitter", action="store_true",
                     help="write only the emitter fixture (onnxruntime and onnx/gradnet.onnx)")
     ap.add_argument("--int8", action="store_true",
@@ -68,8 +69,7 @@ def main(argv=None):
         return int8_fixtures(args.out)
     torch.set_num_threads(2)
     os.makedirs(args.out, exist_ok=True)
-    full, _ = ex.load_checkpoint(args.full)
-    nofeat, _ = ex.load_checkpoint(args.nofeat)
+    full, nofeat = torch_model(args.full), torch_model(args.nofeat)
     run_full, run_nofeat = pl.torch_runner(full), pl.torch_runner(nofeat)
     sample = pl.read_frame(os.path.join(REPO, "examples", "data", "sample.exr"))
     save = lambda name, a: np.save(os.path.join(args.out, name), np.asarray(a, np.float32))  # noqa: E731
@@ -92,6 +92,14 @@ def main(argv=None):
     save("bias_color.npy", color)
     save("bias_corrected.npy", pl.bias_correct(out, color))
     print("wrote", args.out)
+
+
+def torch_model(path):
+    """The torch model of a training checkpoint, or rebuilt from an exported graph's weights
+    (`export.net_from_onnx`: the same torch module, so the fixtures stay torch's)."""
+    if path.endswith(".onnx"):
+        return ex.net_from_onnx(path)
+    return ex.load_checkpoint(path)[0]
 
 
 def emitter_fixture(out_dir):

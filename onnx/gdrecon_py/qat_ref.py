@@ -28,6 +28,12 @@ validation relMSE by 36 % in 100 steps).
     $GDRECON_PYTHON -m gdrecon_py.qat_ref --start START.onnx --out RUN [--val ~/.cache/gdrecon/data/val]
     $GDRECON_PYTHON -m gdrecon_py.qat quantize --ckpt RUN/last.pt --ranges RANGES.json --out onnx/gradnet_int8.onnx
 
+`--fp32` fine-tunes the fp32 network itself with the same loss (the student unquantised, started
+from the fp32 graph `--start`, the teacher that graph too unless `--teacher` says otherwise), and
+`python -m gdrecon_py.export --ckpt RUN/last.pt --out onnx/gradnet.onnx` exports it:
+
+    $GDRECON_PYTHON -m gdrecon_py.qat_ref --fp32 --start onnx/gradnet.onnx --out RUN
+
 Re-running the same command resumes from RUN/last.pt (saved every `--save-every` steps with the
 optimiser and the sampler's state): the result is the same as an uninterrupted run's.
 Crops: `--batch` of `--patch`^2 from the bundles, one of the 8 rotations/mirrors with exact
@@ -116,8 +122,8 @@ def lr_at(step, total, lr, warmup):
 
 
 def validate(student, frames):
-    """`train_gradnet.validate` with the simulated int8 network: relMSE of the whole reference
-    pipeline per frame, geometric means per spp and over all frames."""
+    """`train_gradnet.validate` with the student (the simulated int8 network, or fp32): relMSE of
+    the whole reference pipeline per frame, geometric means per spp and over all frames."""
     from .train_gradnet import validate as validate_net
     score, geo, rows = validate_net(student, frames, "cpu")
     return {"all": score, **{f"{k}spp": v for k, v in geo.items()}, "rows": rows}
@@ -128,8 +134,11 @@ def main(argv=None):
     ap.add_argument("--data", default=os.path.expanduser("~/.cache/gdrecon/data/qatref"),
                     help="bundles with reference layers")
     ap.add_argument("--skip", default="aquarium,vitrine", help="families left out (comma-separated)")
-    ap.add_argument("--start", required=True, help="the int8 graph whose weights and ranges the run starts from")
-    ap.add_argument("--teacher", default=os.path.join(ONNX_DIR, "gradnet.onnx"))
+    ap.add_argument("--start", required=True,
+                    help="the int8 graph whose weights and ranges the run starts from (--fp32: an fp32 graph)")
+    ap.add_argument("--teacher", default="", help="the fp32 graph of the distillation term and the weight "
+                    "(default: onnx/gradnet.onnx; with --fp32, --start)")
+    ap.add_argument("--fp32", action="store_true", help="fine-tune the fp32 network (no quantisation simulated)")
     ap.add_argument("--out", required=True, help="run folder (last.pt, log.jsonl); re-running resumes")
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--batch", type=int, default=8)
@@ -147,6 +156,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     from .export import net_from_onnx
     from .quantize import sha256_file
+    if not args.teacher:
+        args.teacher = args.start if args.fp32 else os.path.join(ONNX_DIR, "gradnet.onnx")
     torch.set_num_threads(args.threads)
     os.makedirs(args.out, exist_ok=True)
     t_start = time.time()
@@ -154,11 +165,15 @@ def main(argv=None):
     arr, names = load_frames(args.data, set(filter(None, args.skip.split(","))))
     print(f"{arr.shape[0]} training frames ({time.time() - t_start:.1f} s)", flush=True)
     gen = torch.Generator().manual_seed(args.seed)
-    student = qat.QATGradNet(qat.net_from_int8(args.start), qat.ranges_from_int8(args.start))
+    if args.fp32:
+        student = net_from_onnx(args.start)
+    else:
+        student = qat.QATGradNet(qat.net_from_int8(args.start), qat.ranges_from_int8(args.start))
     teacher = net_from_onnx(args.teacher).eval()
     for p in teacher.parameters():
         p.requires_grad_(False)
-    opt = torch.optim.Adam(student.net.parameters(), lr=args.lr)
+    net = student if args.fp32 else student.net
+    opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     val = []
     for f in sorted(glob.glob(os.path.join(args.val, "*.exr"))) if args.val else []:
         fr = pl.read_frame(f)
@@ -168,7 +183,7 @@ def main(argv=None):
     step, elapsed = 0, 0.0
     if os.path.exists(last):
         ck = torch.load(last, map_location="cpu", weights_only=False)
-        student.net.load_state_dict(ck["net"])
+        net.load_state_dict(ck["net"])
         opt.load_state_dict(ck["opt"])
         gen.set_state(ck["sampler_rng"])
         step, elapsed = ck["step"], ck["elapsed"]
@@ -182,12 +197,17 @@ def main(argv=None):
 
     teacher_sha, start_sha = sha256_file(args.teacher), sha256_file(args.start)
 
+    what = (f"against {len(names)} bundles' references (gdrecon_py.qat_ref), from the fp32 graph sha256 "
+            f"{start_sha}" if args.fp32 else
+            f"quantisation-aware (gdrecon_py.qat_ref) against {len(names)} bundles' references and the "
+            f"fp32 graph, from an int8 graph (sha256 {start_sha})")
+
     def save():
-        ck = {"net": student.net.state_dict(), "opt": opt.state_dict(), "sampler_rng": gen.get_state(),
-              "step": step, "total": args.steps, "elapsed": elapsed, "args": vars(args),
+        ck = {"net": net.state_dict(), "variant": "full", "precision": "fp32" if args.fp32 else "int8",
+              "opt": opt.state_dict(), "sampler_rng": gen.get_state(), "step": step, "total": args.steps,
+              "elapsed": elapsed, "args": vars(args),
               "model_sha256": teacher_sha, "start_sha256": start_sha, "frames": names, "device_name": "cpu",
-              "fine_tuned": f"quantisation-aware (gdrecon_py.qat_ref) against {len(names)} bundles' "
-                            f"references and the fp32 graph, from an int8 graph (sha256 {start_sha})"}
+              "fine_tuned": what}
         torch.save(ck, last + ".tmp")
         os.replace(last + ".tmp", last)
 

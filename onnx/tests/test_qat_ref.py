@@ -81,3 +81,73 @@ def test_schedule_warms_up_then_decays_to_zero():
 def test_an_empty_folder_is_refused(tmp_path):
     with pytest.raises(SystemExit, match="no bundles"):
         qat_ref.load_frames(str(tmp_path), set())
+
+
+def _bundles(folder, n=2, size=24):
+    """n bundles of a training family with a reference layer (the reference 2 x colour + 0.1)."""
+    from gdrecon_py.data.render import write_bundle
+    arr = frames(n, size, size, seed=5).numpy().transpose(0, 2, 3, 1)
+    for i in range(n):
+        a = arr[i]
+        write_bundle(str(folder / f"cornell_p{i:04d}_4spp.exr"),
+                     {"color": a[..., 0:3], "dx": a[..., 3:6], "dy": a[..., 6:9], "albedo": a[..., 9:12],
+                      "normal": a[..., 12:15] * 2 - 1, "depth": a[..., 15:16], "reference": a[..., 16:19]},
+                     {"spp": 4.0}, feature_half=False)
+
+
+def test_fp32_fine_tuning_resumes_and_exports_with_its_provenance(tmp_path, monkeypatch):
+    """`--fp32`: the plain network trains, a run stopped after a save and started again ends with
+    the weights of an uninterrupted one, and the export finds the start graph in the manifest and
+    records the fine-tuning after its training."""
+    import json
+
+    from gdrecon_py import export as ex
+    data = tmp_path / "data"
+    data.mkdir()
+    _bundles(data)
+    torch.manual_seed(0)
+    net = gn.GradNet().eval()
+    with torch.no_grad():
+        net.out.bias.fill_(0.4)         # as train_gradnet starts (a live final ReLU)
+    start = str(tmp_path / "start.onnx")
+    ex.export_model(net, start)
+    sha = ex.sha256_file(start)
+    common = ["--fp32", "--start", start, "--data", str(data), "--skip", "", "--batch", "1", "--steps", "4",
+              "--patch", "16", "--lr", "1e-4", "--warmup", "1", "--save-every", "2", "--threads", "1"]
+    qat_ref.main(common + ["--out", str(tmp_path / "whole")])
+    whole = torch.load(tmp_path / "whole" / "last.pt", weights_only=False)
+    assert whole["precision"] == "fp32" and whole["start_sha256"] == sha and whole["step"] == 4
+    before = ex.net_from_onnx(start).state_dict()
+    assert any(not torch.equal(before[k], v) for k, v in whole["net"].items())
+
+    calls, loss_of = [], qat_ref.loss_of
+
+    def stop_at_the_third_step(*a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return loss_of(*a, **k)
+    monkeypatch.setattr(qat_ref, "loss_of", stop_at_the_third_step)
+    with pytest.raises(KeyboardInterrupt):
+        qat_ref.main(common + ["--out", str(tmp_path / "split")])
+    monkeypatch.setattr(qat_ref, "loss_of", loss_of)
+    assert torch.load(tmp_path / "split" / "last.pt", weights_only=False)["step"] == 2
+    qat_ref.main(common + ["--out", str(tmp_path / "split")])
+    split = torch.load(tmp_path / "split" / "last.pt", weights_only=False)
+    assert split["step"] == 4 and all(torch.equal(whole["net"][k], v) for k, v in split["net"].items())
+
+    manifest = tmp_path / "models.json"
+    manifest.write_text(json.dumps({"models": {"start.onnx": {
+        "sha256": sha, "variant": "full", "epochs_trained": 16, "train_seconds": 495,
+        "train_args": {"lr": 4e-4}}}}))
+    prov = ex.provenance(whole, str(manifest))
+    assert prov["epochs_trained"] == 16 and prov["train_args"] == {"lr": 4e-4}
+    (run,) = prov["fine_tuned"]
+    assert run["start_sha256"] == sha and run["steps"] == 4 and run["args"]["fp32"]
+    # a fine-tuning of that export appends to the list
+    manifest.write_text(json.dumps({"models": {"x.onnx": {"sha256": "ab" * 32, **prov}}}))
+    assert len(ex.provenance(dict(whole, start_sha256="ab" * 32), str(manifest))["fine_tuned"]) == 2
+    with pytest.raises(SystemExit, match="not in"):
+        ex.provenance(dict(whole, start_sha256="cd" * 32), str(manifest))
+    with pytest.raises(SystemExit, match="quantise"):
+        ex.provenance(dict(whole, precision="int8"), str(manifest))
