@@ -8,14 +8,15 @@
 //!    can be loaded. On the validation split the combiner is 0.77 / 0.77 / 0.66x OIDN alone
 //!    (geometric mean at 4 / 16 / 64 spp) with no frame above 1.03x; L1 on the prior 0.88 /
 //!    0.85 / 0.78x (worst 1.02x); both better than every method without a prior (the best of
-//!    them, GradNet, is 1.61 / 1.02 / 1.06x OIDN there). The combiner became the default in
+//!    them, GradNet, is 1.45 / 0.91 / 0.96x OIDN there). The combiner became the default in
 //!    the twenty-first session, once no validation frame was worse than OIDN alone by more
 //!    than #16's 5 % (`docs/benchmarks.md`). Why the combiner or OIDN could not run is part of
 //!    the note when it falls through.
 //! 1. **no prior → `gradnet`** when ONNX Runtime and the model load. The GPU-trained model
-//!    (nineteenth session) is 0.72 / 0.53 / 0.75x FRGR's relMSE at 4 / 16 / 64 spp on the
-//!    validation split (geometric mean; 0.50 / 0.53 / 0.64 on test) and needs no sample
-//!    count. The frame's features decide the model (with or without the feature branch).
+//!    (nineteenth session), fine-tuned against references (thirty-eighth), is 0.65 / 0.50 /
+//!    0.73x FRGR's relMSE at 4 / 16 / 64 spp on the validation split (geometric mean; 0.55 /
+//!    0.56 / 0.75 on test) and needs no sample count. The frame's features decide the model
+//!    (with or without the feature branch).
 //! 2. **GradNet unavailable** (built without it, or ONNX Runtime or the model not found) **→
 //!    `frgr`** (RDFC guide) when the spp is known: the best method without a runtime. A
 //!    missing variance layer is estimated by FRGR itself (3 x 3 colour statistics; noted).
