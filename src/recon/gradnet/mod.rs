@@ -40,8 +40,7 @@ pub use model::ModelVariant;
 /// is about 2.6x faster on a CPU with AVX-512 VNNI; its relMSE is 3 % (validation) and 6 %
 /// (test) above fp32's in the geometric means, 12 % at 64 spp, and up to 1.58x on frames with
 /// emitters in view (`lamps`). Frames without features always run the fp32 no-feature model.
-/// The
-/// combiner's head runs int8 by default: `onnx/combiner_int8.onnx` (`docs/benchmarks.md`,
+/// The combiner's head runs int8 by default: `onnx/combiner_int8.onnx` (`docs/benchmarks.md`,
 /// "Seventeenth session").
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Precision {
