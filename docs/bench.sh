@@ -43,8 +43,6 @@ done
 
 # shellcheck source=/dev/null
 source onnx/env.sh
-# this checkout's gdrecon_py, whichever checkout the environment's editable install points at
-export PYTHONPATH="$PWD/onnx${PYTHONPATH:+:$PYTHONPATH}"
 if [ -z "${ORT_DYLIB_PATH:-}" ]; then
   echo "bench.sh: no ONNX Runtime for gradnet: run 'bash onnx/setup.sh' first" >&2
   exit 1

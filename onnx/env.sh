@@ -4,6 +4,14 @@
 GDRECON_VENV="${GDRECON_VENV:-$HOME/.cache/gdrecon/venv}"
 export GDRECON_VENV
 export GDRECON_PYTHON="$GDRECON_VENV/bin/python"
+# This checkout's gdrecon_py first: the venv is shared between checkouts and its editable
+# install points at whichever one ran setup.sh last.
+_gdr_f="$(cd "$(dirname "${BASH_SOURCE[0]:-$0}")" && pwd)"
+case ":${PYTHONPATH:-}:" in
+  *":$_gdr_f:"*) ;;
+  *) export PYTHONPATH="$_gdr_f${PYTHONPATH:+:$PYTHONPATH}" ;;
+esac
+unset _gdr_f
 if [ -z "${DRJIT_LIBLLVM_PATH:-}" ]; then
   for _gdr_f in $(dpkg -L libllvm19 2>/dev/null | grep -E '/libLLVM\.so\.19(\.[0-9]+)*$') \
                 /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 /usr/lib/*/libLLVM-19.so; do
