@@ -50,19 +50,19 @@ import time
 import numpy as np
 import torch
 
-from . import ONNX_DIR
+from . import ONNX_DIR, pack, qat
 from . import pipeline as pl
-from . import qat
 from .mulaw import mulaw_inv
 
-PLANES = 19     # colour, dx, dy (3 each), the 7 normalised features, reference (3)
+# A frame's planes: the training planes (colour, dx, dy, the 7 normalised features), then the
+# reference's three.
+REF = slice(pack.TRAIN_PLANES, pack.TRAIN_PLANES + 3)
 
 
 def load_frames(folder, skip):
     """Every bundle with a reference in `folder`, sorted by name, families in `skip` left out ->
     N x 19 x H x W float32: the training planes inference would prepare (`pack.train_planes`)
     and the reference."""
-    from .pack import train_planes
     frames, names = [], []
     for f in sorted(glob.glob(os.path.join(folder, "*.exr"))):
         name = os.path.basename(f)
@@ -72,7 +72,7 @@ def load_frames(folder, skip):
         if fr.get("reference") is None:
             raise SystemExit(f"{f}: no reference layer (render with --ref-spp)")
         ref = np.nan_to_num(fr["reference"].astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        frames.append(np.concatenate([train_planes(fr), ref.transpose(2, 0, 1)]))
+        frames.append(np.concatenate([pack.train_planes(fr), ref.transpose(2, 0, 1)]))
         names.append(name)
     if not frames:
         raise SystemExit(f"{folder}: no bundles")
@@ -92,16 +92,16 @@ def sample(arr, gen, batch, patch, exposure):
     x = dihedral_apply(x, code)
     s = scale[:, None, None, None]
     x[:, :9] *= s
-    x[:, 16:19] *= s
+    x[:, REF] *= s
     return x
 
 
 def loss_of(student, teacher, x, dist, clip):
     """The loss of the module docstring on crops `x` (B x 19 x P x P)."""
     from .train import split_batch
-    data, grad = split_batch(x[:, :16])[:2]
+    data, grad = split_batch(x[:, :pack.TRAIN_PLANES])[:2]
     B, _, h, w = x.shape
-    ref = x[:, 16:19].reshape(B * 3, 1, h, w)
+    ref = x[:, REF].reshape(B * 3, 1, h, w)
     ly = mulaw_inv(student(data, grad))
     with torch.no_grad():
         lt = mulaw_inv(teacher(data, grad))
