@@ -86,6 +86,31 @@ SHARED = {"/u1/u1.0/Slice_output_0": "/u1/u1.0/Relu_output_0",
           "/u2/u2.0/Slice_output_0": "/u2/u2.0/Relu_output_0"}
 
 
+# The convolution outputs that feed a LeakyReLU (slope 0.01), each with that activation's output.
+# The graph quantises both: the convolution's range covers its negative side in full (down to
+# -4.2 where the activation keeps -0.042), so its uint8 step is 3-7 times the activation's.
+PRE_LRELU = {**{f"/{b}{i}/{b}{i}.0/Conv_output_0": f"/{b}{i}/{b}{i}.1/LeakyRelu_output_0"
+                for i in (1, 2, 3) for b in ("d", "g")},
+             **{f"/res/res.{i}/c1/Conv_output_0": f"/res/res.{i}/LeakyRelu_output_0" for i in range(4)}}
+
+
+def narrow_negatives(ranges, fraction):
+    """`ranges` with each PRE_LRELU tensor's negative side cut to `fraction` of its length, the
+    positive side kept, so that the 256 steps are finer: (s, z) -> (s', z') with
+    s' = (fraction s z + s (255 - z)) / 255, z' = round(fraction s z / s'). 1 changes nothing."""
+    out = dict(ranges)
+    if fraction == 1:
+        return out
+    if not 0 < fraction < 1:
+        raise ValueError(f"negative fraction {fraction}: not in (0, 1]")
+    for k in PRE_LRELU:
+        s, z = ranges[k]
+        lo, hi = fraction * s * z, s * (255 - z)
+        s2 = float(np.float32((lo + hi) / 255))
+        out[k] = (s2, int(round(lo / s2)))
+    return out
+
+
 def deployed(ranges):
     """`ranges` as the deployed graph quantises: each crop with its shuffle input's range (the
     crop's own quantisation is then the identity)."""
@@ -175,9 +200,33 @@ def net_from_int8(path):
     return net.eval()
 
 
+class _FakeActLSQ(torch.autograd.Function):
+    """`_FakeAct` whose scale is learned (LSQ, Esser et al. 2020): besides the straight-through
+    gradient for x, dy/ds = round(x / s) - x / s inside the range and (qmin - z) or (qmax - z)
+    where x is clipped. The forward pass is `_FakeAct`'s, bit for bit."""
+
+    @staticmethod
+    def forward(ctx, x, scale, zp):
+        r = x / scale
+        q = torch.round(r) + zp
+        below, above = q < QMIN_A, q > QMAX_A
+        ctx.save_for_backward(r, q, below, above, zp)
+        return (q.clamp(QMIN_A, QMAX_A) - zp) * scale
+
+    @staticmethod
+    def backward(ctx, g):
+        r, q, below, above, zp = ctx.saved_tensors
+        inside = ~(below | above)
+        ds = torch.where(inside, q - zp - r, torch.where(below, QMIN_A - zp, QMAX_A - zp))
+        return g * inside, (g * ds).sum().reshape(()), None
+
+
 def fake_act(x, scale, zp):
     """uint8 QuantizeLinear + DequantizeLinear of `x` (float32 math), straight-through inside the
-    range. scale: 0-d float32 tensor, zp: 0-d tensor, on x's device."""
+    range. scale: 0-d float32 tensor, zp: 0-d tensor, on x's device; a scale that requires a
+    gradient gets LSQ's."""
+    if scale.requires_grad:
+        return _FakeActLSQ.apply(x.float(), scale, zp.float())
     return _FakeAct.apply(x.float(), scale, zp.float())
 
 
@@ -206,9 +255,11 @@ def fake_weight(w, transposed):
 
 class QATGradNet(nn.Module):
     """GradNet's forward pass with the int8 graph's quantisation simulated (`quant` True) or not
-    (then bit-for-bit `net`'s). `ranges`: {ONNX name: (scale, zero point)} for ACT_NAMES."""
+    (then bit-for-bit `net`'s). `ranges`: {ONNX name: (scale, zero point)} for ACT_NAMES.
+    `learn_ranges`: the scales become a parameter (`log_scales`, LSQ's gradient; a crop shares
+    its shuffle input's, as deployed), the zero points stay."""
 
-    def __init__(self, net, ranges):
+    def __init__(self, net, ranges, learn_ranges=False):
         super().__init__()
         self.net = net
         self.quant = True
@@ -218,6 +269,20 @@ class QATGradNet(nn.Module):
         self.register_buffer("scales", s)
         self.register_buffer("zps", z)
         self._index = {k: i for i, k in enumerate(ACT_NAMES)}
+        # the tensor whose scale each one uses (itself, or for a crop its shuffle input)
+        self._tie = [self._index[SHARED.get(k, k)] for k in ACT_NAMES]
+        self.log_scales = nn.Parameter(torch.log(s)) if learn_ranges else None
+
+    def scale(self, i):
+        """The scale of ACT_NAMES[i] (0-d float32 tensor)."""
+        if self.log_scales is None:
+            return self.scales[i]
+        return torch.exp(self.log_scales[self._tie[i]])
+
+    def ranges(self):
+        """{ONNX name: (scale, zero point)} as simulated now (float32 scales), `deployed` form."""
+        with torch.no_grad():
+            return {k: (float(self.scale(i)), int(self.zps[i])) for i, k in enumerate(ACT_NAMES)}
 
     @property
     def data_ch(self):
@@ -228,7 +293,7 @@ class QATGradNet(nn.Module):
         if not self.quant:
             return x
         i = self._index[name]
-        return fake_act(x, self.scales[i], self.zps[i])
+        return fake_act(x, self.scale(i), self.zps[i])
 
     def _w(self, conv, name, transposed=False):
         if not self.quant or name in FP32_CONVS:
@@ -466,8 +531,17 @@ def quantize_ckpt(args):
     net = gn.GradNet()
     net.load_state_dict(ck["net"])
     net.eval()
-    with open(args.ranges) as f:
-        rj = json.load(f)
+    if ck.get("ranges"):
+        # a `qat_ref` run saves the ranges it simulated (narrowed or learned, maybe)
+        rj = {"ranges": ck["ranges"]}
+        origin = ("the run's own (its checkpoint's; source.fine_tuned says how they were set), starting "
+                  f"from those of the int8 graph sha256 {ck.get('start_sha256')}")
+    elif args.ranges:
+        with open(args.ranges) as f:
+            rj = json.load(f)
+        origin = f"from {rj.get('source')} sha256 {rj.get('sha256')}"
+    else:
+        raise SystemExit(f"{args.ckpt}: the checkpoint holds no ranges; name them with --ranges")
     ranges = deployed({k: tuple(v) for k, v in rj["ranges"].items()})
     overrides = {k: [{"scale": np.array(s, np.float32), "zero_point": np.array(z, np.uint8)}]
                  for k, (s, z) in ranges.items()}
@@ -518,6 +592,9 @@ def quantize_ckpt(args):
                         "qat_steps": ck.get("step"), "qat_seconds": round(ck.get("elapsed", 0.0)),
                         "qat_device": ck.get("device_name"), "qat_lr": targs.get("lr"),
                         "qat_batch": targs.get("batch"), "qat_patch": targs.get("patch"),
+                        **({"qat_negative_fraction": targs["negative_fraction"]}
+                           if targs.get("negative_fraction", 1.0) != 1.0 else {}),
+                        **({"qat_learn_ranges": targs["learn_ranges"]} if targs.get("learn_ranges") else {}),
                         "fp32_of_fine_tuned_sha256": src_sha},
              "quantization": {"tool": f"onnxruntime.quantization {onnxruntime.__version__}", "format": "qdq",
                               "weights": "int8 symmetric per channel",
@@ -525,7 +602,7 @@ def quantize_ckpt(args):
                               "reduce_range": False,
                               "calibration": "percentile" if args.recalibrate else
                               "fixed: the ranges the weights were tuned for (TensorQuantOverrides), "
-                              f"from {rj.get('source')} sha256 {rj.get('sha256')}",
+                              + origin,
                               "nodes_in_fp32": qz.DEFAULT_EXCLUDE.split(",")},
              "calibration": {"split": f"{os.path.basename(os.path.normpath(args.data))} (training only)",
                              "dir": args.data.replace(os.path.expanduser("~"), "~"),
@@ -566,7 +643,8 @@ def main(argv=None):
     t.add_argument("--export", default="", help="folder for the weights in parts (last-*.pt) and the log")
     q = sub.add_parser("quantize", help="fine-tuned weights -> int8 QDQ graph with the tuned ranges")
     q.add_argument("--ckpt", required=True, help="a checkpoint (.pt) or the prefix of exported parts")
-    q.add_argument("--ranges", required=True)
+    q.add_argument("--ranges", default="",
+                   help="JSON from `ranges` (ignored when the checkpoint learned its own)")
     q.add_argument("--out", required=True)
     q.add_argument("--data", default=os.path.expanduser("~/.cache/gdrecon/data/train3"))
     q.add_argument("--frames", type=int, default=24)

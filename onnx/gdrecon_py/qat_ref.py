@@ -5,7 +5,7 @@ docs/gradnet.md, "Fine-tuning against references").
 whole pipeline's relMSE +5.9 % over fp32 on validation, because what remains of the difference
 leans the way fp32 is already wrong (the cross term, which a loss without a reference cannot
 see). This module continues from an int8 graph's own weights (`qat.net_from_int8`, its
-activation ranges kept: `qat.ranges_from_int8`) with a loss that has the reference in it:
+activation ranges, `qat.ranges_from_int8`, as below) with a loss that has the reference in it:
 
     L = mean(clip(w (y - R)^2, c)) + d mean(w (y - T)^2),   w = 1 / (T^2 + 0.01)
 
@@ -24,9 +24,16 @@ validation relMSE by 36 % in 100 steps).
     $GDRECON_PYTHON -m gdrecon_py.data.render --scene train --size 144x144 --ref-spp 1024 \\
         --perturb-seed 1 --seed 40000 --out ~/.cache/gdrecon/data/qatref --skip-existing \\
         --spp 4,16,64 --perturb 100:110
-    $GDRECON_PYTHON -m gdrecon_py.qat ranges --int8 START.onnx --out RANGES.json
-    $GDRECON_PYTHON -m gdrecon_py.qat_ref --start START.onnx --out RUN [--val ~/.cache/gdrecon/data/val]
-    $GDRECON_PYTHON -m gdrecon_py.qat quantize --ckpt RUN/last.pt --ranges RANGES.json --out onnx/gradnet_int8.onnx
+    $GDRECON_PYTHON -m gdrecon_py.qat_ref --start START.onnx --out RUN --negative-fraction 0.5 \\
+        --learn-ranges 2e-3 [--val ~/.cache/gdrecon/data/val]
+    $GDRECON_PYTHON -m gdrecon_py.qat quantize --ckpt RUN/last.pt --out onnx/gradnet_int8.onnx
+
+Activation ranges: the start graph's, each convolution output that feeds a LeakyReLU with the
+negative side of its range cut to `--negative-fraction` (`qat.narrow_negatives`: the graph
+quantises that output before the activation, so its full negative side, which the activation
+scales by 0.01, made its steps 3-7 times the activation's); `--learn-ranges LR` learns the
+scales (LSQ, zero points kept) at that peak rate. The checkpoint keeps the ranges it simulated
+and `qat quantize` writes them into the graph (docs/gradnet.md, "Finer activation ranges").
 
 `--fp32` fine-tunes the fp32 network itself with the same loss (the student unquantised, started
 from the fp32 graph `--start`, the teacher that graph too unless `--teacher` says otherwise), and
@@ -139,6 +146,12 @@ def main(argv=None):
     ap.add_argument("--teacher", default="", help="the fp32 graph of the distillation term and the weight "
                     "(default: onnx/gradnet.onnx; with --fp32, --start)")
     ap.add_argument("--fp32", action="store_true", help="fine-tune the fp32 network (no quantisation simulated)")
+    ap.add_argument("--negative-fraction", type=float, default=1.0, metavar="F",
+                    help="start with each pre-LeakyReLU convolution output's negative range cut to this "
+                    "fraction (qat.narrow_negatives; 1: the start graph's ranges)")
+    ap.add_argument("--learn-ranges", type=float, default=0.0, metavar="LR",
+                    help="learn the activation scales too (LSQ, on their logarithm, at this peak rate "
+                    "with the weights' schedule); 0: keep the start graph's")
     ap.add_argument("--out", required=True, help="run folder (last.pt, log.jsonl); re-running resumes")
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--batch", type=int, default=8)
@@ -168,12 +181,19 @@ def main(argv=None):
     if args.fp32:
         student = net_from_onnx(args.start)
     else:
-        student = qat.QATGradNet(qat.net_from_int8(args.start), qat.ranges_from_int8(args.start))
+        ranges = qat.narrow_negatives(qat.ranges_from_int8(args.start), args.negative_fraction)
+        student = qat.QATGradNet(qat.net_from_int8(args.start), ranges, learn_ranges=args.learn_ranges > 0)
     teacher = net_from_onnx(args.teacher).eval()
     for p in teacher.parameters():
         p.requires_grad_(False)
     net = student if args.fp32 else student.net
-    opt = torch.optim.Adam(net.parameters(), lr=args.lr)
+    # each group follows the schedule from its own peak rate
+    groups = [{"params": list(net.parameters()), "peak": args.lr}]
+    if args.learn_ranges > 0:
+        if args.fp32:
+            raise SystemExit("--learn-ranges: an fp32 run has no activation ranges")
+        groups.append({"params": [student.log_scales], "peak": args.learn_ranges})
+    opt = torch.optim.Adam(groups, lr=args.lr)
     val = []
     for f in sorted(glob.glob(os.path.join(args.val, "*.exr"))) if args.val else []:
         fr = pl.read_frame(f)
@@ -184,6 +204,9 @@ def main(argv=None):
     if os.path.exists(last):
         ck = torch.load(last, map_location="cpu", weights_only=False)
         net.load_state_dict(ck["net"])
+        if ck.get("log_scales") is not None:
+            with torch.no_grad():
+                student.log_scales.copy_(ck["log_scales"])
         opt.load_state_dict(ck["opt"])
         gen.set_state(ck["sampler_rng"])
         step, elapsed = ck["step"], ck["elapsed"]
@@ -200,7 +223,10 @@ def main(argv=None):
     what = (f"against {len(names)} bundles' references (gdrecon_py.qat_ref), from the fp32 graph sha256 "
             f"{start_sha}" if args.fp32 else
             f"quantisation-aware (gdrecon_py.qat_ref) against {len(names)} bundles' references and the "
-            f"fp32 graph, from an int8 graph (sha256 {start_sha})")
+            f"fp32 graph, from an int8 graph (sha256 {start_sha})"
+            + (f", pre-LeakyReLU negative ranges cut to {args.negative_fraction:g}"
+               if args.negative_fraction != 1 else "")
+            + (", activation ranges learned (LSQ)" if args.learn_ranges > 0 else ""))
 
     def save():
         ck = {"net": net.state_dict(), "variant": "full", "precision": "fp32" if args.fp32 else "int8",
@@ -208,6 +234,11 @@ def main(argv=None):
               "elapsed": elapsed, "args": vars(args),
               "model_sha256": teacher_sha, "start_sha256": start_sha, "frames": names, "device_name": "cpu",
               "fine_tuned": what}
+        if not args.fp32:
+            # the ranges simulated (`qat quantize` writes these into the graph)
+            ck["ranges"] = student.ranges()
+            if student.log_scales is not None:
+                ck["log_scales"] = student.log_scales.detach().clone()
         torch.save(ck, last + ".tmp")
         os.replace(last + ".tmp", last)
 
@@ -218,7 +249,7 @@ def main(argv=None):
     while step < args.steps:
         lr = lr_at(step, args.steps, args.lr, args.warmup)
         for g in opt.param_groups:
-            g["lr"] = lr
+            g["lr"] = lr_at(step, args.steps, g["peak"], args.warmup)
         loss = loss_of(student, teacher, sample(arr, gen, args.batch, args.patch, args.exposure),
                        args.dist, args.clip)
         opt.zero_grad(set_to_none=True)

@@ -139,3 +139,71 @@ def test_run_resumes_exactly(tmp_path):
     assert all(np.isfinite(losses(la)))
     from gdrecon_py.train_gradnet import merge_parts
     assert merge_parts(str(tmp_path / "exp" / "last"))["step"] == 6
+
+
+def test_learned_scale_gets_lsq_gradient_and_the_same_forward():
+    """With the scale learned the output is `fake_act`'s bit for bit; x's gradient is the
+    straight-through one, the scale's LSQ's (computed here in numpy): round(x/s) - x/s inside the
+    range, qmin - z below it, qmax - z above."""
+    scale, zp = 0.0123, 37
+    x = np.concatenate([np.linspace(-1, 3.5, 4001), (np.arange(-40, 220) + 0.5) * scale]).astype(np.float32)
+    c = np.random.default_rng(0).standard_normal(x.size).astype(np.float32)
+    s = torch.tensor(scale, dtype=torch.float32, requires_grad=True)
+    xt = torch.from_numpy(x).requires_grad_(True)
+    y = qat.fake_act(xt, s, torch.tensor(zp, dtype=torch.int32))
+    fixed = qat.fake_act(torch.from_numpy(x), torch.tensor(scale), torch.tensor(zp, dtype=torch.int32))
+    assert torch.equal(y.detach(), fixed)
+    (y * torch.from_numpy(c)).sum().backward()
+    r = x / np.float32(scale)
+    q = np.round(r) + zp
+    inside = (q >= 0) & (q <= 255)
+    ds = np.where(inside, q - zp - r, np.where(q < 0, 0 - zp, 255 - zp))
+    assert np.array_equal(xt.grad.numpy(), c * inside)
+    assert inside.any() and (~inside).any()
+    want = float((c.astype(np.float64) * ds).sum())
+    assert abs(float(s.grad) - want) <= 1e-4 * np.abs(c * ds).sum(), (float(s.grad), want)
+
+
+def test_learned_ranges_start_at_the_graph_and_a_crop_follows_its_shuffle():
+    """`learn_ranges`: the simulation starts at the graph's ranges (its output equal to the fixed
+    ranges' up to float32 rounding of exp(log s)), every scale gets a gradient, and a crop keeps
+    its shuffle input's scale however the scales move."""
+    sim = qat.QATGradNet(qat.net_from_int8(INT8), qat.ranges_from_int8(INT8), learn_ranges=True)
+    fixed = qat.QATGradNet(qat.net_from_int8(INT8), qat.ranges_from_int8(INT8)).eval()
+    want = qat.deployed(qat.ranges_from_int8(INT8))
+    got = sim.ranges()
+    for k in qat.ACT_NAMES:
+        assert abs(got[k][0] - want[k][0]) <= 1e-6 * want[k][0] and got[k][1] == want[k][1], k
+    d, g = inputs(4)
+    with torch.no_grad():
+        assert (sim.eval()(d, g) - fixed(d, g)).abs().max() < 1e-3
+    sim.train()
+    sim(d, g).mean().backward()
+    used = {sim._tie[i] for i in range(len(qat.ACT_NAMES))}
+    assert all(float(sim.log_scales.grad[i]) != 0 for i in used)
+    with torch.no_grad():
+        sim.log_scales.add_(0.1 * torch.arange(len(qat.ACT_NAMES)))
+    moved = sim.ranges()
+    for crop, shuffle in qat.SHARED.items():
+        assert moved[crop] == moved[shuffle] and moved[crop][0] != got[crop][0]
+
+
+def test_narrowed_negatives_keep_the_positive_side_with_a_finer_step():
+    """`narrow_negatives`: each pre-LeakyReLU convolution output keeps its positive extent (to a
+    step), its negative extent becomes the fraction asked (to a step) and its step is finer;
+    every other range is untouched; 1 is the identity and a fraction outside (0, 1] is refused."""
+    r = qat.ranges_from_int8(INT8)
+    n = qat.narrow_negatives(r, 0.5)
+    assert set(qat.PRE_LRELU) <= set(qat.ACT_NAMES) and set(qat.PRE_LRELU.values()) <= set(qat.ACT_NAMES)
+    for k in qat.ACT_NAMES:
+        (s, z), (s2, z2) = r[k], n[k]
+        if k not in qat.PRE_LRELU:
+            assert (s2, z2) == (s, z), k
+            continue
+        assert s2 < s and 0 <= z2 < z, k
+        assert abs(s2 * (255 - z2) - s * (255 - z)) <= s2, k
+        assert abs(s2 * z2 - 0.5 * s * z) <= s2, k
+    assert qat.narrow_negatives(r, 1.0) == r
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="negative fraction"):
+            qat.narrow_negatives(r, bad)

@@ -151,3 +151,62 @@ def test_fp32_fine_tuning_resumes_and_exports_with_its_provenance(tmp_path, monk
         ex.provenance(dict(whole, start_sha256="cd" * 32), str(manifest))
     with pytest.raises(SystemExit, match="quantise"):
         ex.provenance(dict(whole, precision="int8"), str(manifest))
+
+
+def test_learned_ranges_resume_and_reach_the_int8_graph(tmp_path, monkeypatch):
+    """`--learn-ranges`: the scales move, a run stopped after a save and started again ends with
+    the uninterrupted run's weights and scales, and `qat quantize` writes the checkpoint's own
+    ranges into the QDQ graph (no --ranges needed)."""
+    from gdrecon_py import ONNX_DIR
+    data = tmp_path / "data"
+    data.mkdir()
+    _bundles(data)
+    start = f"{ONNX_DIR}/gradnet_int8.onnx"
+    common = ["--start", start, "--data", str(data), "--skip", "", "--batch", "1", "--steps", "4",
+              "--patch", "16", "--lr", "1e-4", "--warmup", "1", "--save-every", "2", "--threads", "1",
+              "--learn-ranges", "1e-2"]
+    qat_ref.main(common + ["--out", str(tmp_path / "whole")])
+    whole = torch.load(tmp_path / "whole" / "last.pt", weights_only=False)
+    before = qat.deployed(qat.ranges_from_int8(start))
+    assert whole["precision"] == "int8" and "LSQ" in whole["fine_tuned"]
+    assert any(abs(whole["ranges"][k][0] / before[k][0] - 1) > 1e-3 for k in qat.ACT_NAMES)
+
+    calls, loss_of = [], qat_ref.loss_of
+
+    def stop_at_the_third_step(*a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return loss_of(*a, **k)
+    monkeypatch.setattr(qat_ref, "loss_of", stop_at_the_third_step)
+    with pytest.raises(KeyboardInterrupt):
+        qat_ref.main(common + ["--out", str(tmp_path / "split")])
+    monkeypatch.setattr(qat_ref, "loss_of", loss_of)
+    qat_ref.main(common + ["--out", str(tmp_path / "split")])
+    split = torch.load(tmp_path / "split" / "last.pt", weights_only=False)
+    assert torch.equal(split["log_scales"], whole["log_scales"]) and split["ranges"] == whole["ranges"]
+    assert all(torch.equal(whole["net"][k], v) for k, v in split["net"].items())
+
+    out = str(tmp_path / "lsq_int8.onnx")
+    qat.main(["quantize", "--ckpt", str(tmp_path / "whole" / "last.pt"), "--out", out, "--data", str(data),
+              "--frames", "2", "--no-manifest"])
+    got = qat.ranges_from_int8(out)
+    for k in qat.ACT_NAMES:
+        assert abs(got[k][0] - whole["ranges"][k][0]) <= 1e-12 and got[k][1] == whole["ranges"][k][1], k
+
+
+def test_a_run_starts_from_the_narrowed_ranges(tmp_path):
+    """`--negative-fraction`: the ranges simulated, and saved for `qat quantize`, are the start
+    graph's narrowed (`qat.narrow_negatives`), and a fixed-range run keeps them."""
+    from gdrecon_py import ONNX_DIR
+    data = tmp_path / "data"
+    data.mkdir()
+    _bundles(data)
+    start = f"{ONNX_DIR}/gradnet_int8.onnx"
+    qat_ref.main(["--start", start, "--data", str(data), "--skip", "", "--batch", "1", "--steps", "1",
+                  "--patch", "16", "--warmup", "1", "--threads", "1", "--negative-fraction", "0.5",
+                  "--out", str(tmp_path / "run")])
+    ck = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
+    want = qat.deployed(qat.narrow_negatives(qat.ranges_from_int8(start), 0.5))
+    assert ck["ranges"] == {k: (float(torch.tensor(want[k][0])), want[k][1]) for k in qat.ACT_NAMES}
+    assert "cut to 0.5" in ck["fine_tuned"] and "log_scales" not in ck
