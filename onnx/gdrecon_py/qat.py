@@ -41,8 +41,10 @@ Result (twenty-fourth session, docs/gradnet.md): `l1`, lr 1e-4, 3731 steps on an
 the int8 graph's distance from fp32 on training frames, and its relMSE over fp32 went from +6.8
 to +5.8 % on validation and from +10.4 to +7.0 % on test, still over 2 %. The shipped graph
 was then fine-tuned further against references (`qat_ref.py`: +0.9 / +1.5 %); since the fp32
-model was fine-tuned against them too, the shipped int8 graph is that recipe applied to it
-(+3.3 / +5.8 % over the new fp32 through the library).
+model was fine-tuned against them too, the int8 graph was that recipe applied to it (+3.3 /
++5.8 % over the new fp32 through the library), and since the thirty-ninth session that recipe
+with narrowed pre-LeakyReLU ranges and learned scales (`qat_ref --negative-fraction 0.5
+--learn-ranges 2e-3`: +1.5 / +4.9 %).
 """
 import argparse
 import copy
@@ -644,7 +646,7 @@ def main(argv=None):
     q = sub.add_parser("quantize", help="fine-tuned weights -> int8 QDQ graph with the tuned ranges")
     q.add_argument("--ckpt", required=True, help="a checkpoint (.pt) or the prefix of exported parts")
     q.add_argument("--ranges", default="",
-                   help="JSON from `ranges` (ignored when the checkpoint learned its own)")
+                   help="JSON from `ranges` (ignored when the checkpoint holds its own: a qat_ref run's)")
     q.add_argument("--out", required=True)
     q.add_argument("--data", default=os.path.expanduser("~/.cache/gdrecon/data/train3"))
     q.add_argument("--frames", type=int, default=24)

@@ -167,6 +167,8 @@ def main(argv=None):
     ap.add_argument("--val-every", type=int, default=100)
     ap.add_argument("--save-every", type=int, default=50)
     args = ap.parse_args(argv)
+    if args.fp32 and (args.learn_ranges > 0 or args.negative_fraction != 1):
+        raise SystemExit("--learn-ranges, --negative-fraction: an fp32 run has no activation ranges")
     from .export import net_from_onnx
     from .quantize import sha256_file
     if not args.teacher:
@@ -190,8 +192,6 @@ def main(argv=None):
     # each group follows the schedule from its own peak rate
     groups = [{"params": list(net.parameters()), "peak": args.lr}]
     if args.learn_ranges > 0:
-        if args.fp32:
-            raise SystemExit("--learn-ranges: an fp32 run has no activation ranges")
         groups.append({"params": [student.log_scales], "peak": args.learn_ranges})
     opt = torch.optim.Adam(groups, lr=args.lr)
     val = []

@@ -210,3 +210,6 @@ def test_a_run_starts_from_the_narrowed_ranges(tmp_path):
     want = qat.deployed(qat.narrow_negatives(qat.ranges_from_int8(start), 0.5))
     assert ck["ranges"] == {k: (float(torch.tensor(want[k][0])), want[k][1]) for k in qat.ACT_NAMES}
     assert "cut to 0.5" in ck["fine_tuned"] and "log_scales" not in ck
+    for flag in (["--negative-fraction", "0.5"], ["--learn-ranges", "1e-3"]):
+        with pytest.raises(SystemExit, match="fp32 run has no activation ranges"):
+            qat_ref.main(["--fp32", "--start", start, "--out", str(tmp_path / "fp32"), *flag])
