@@ -95,6 +95,26 @@ def _bundles(folder, n=2, size=24):
                      {"spp": 4.0}, feature_half=False)
 
 
+def stopped_and_resumed(monkeypatch, args):
+    """Run `qat_ref` with `args` (4 steps, saved every 2), stop it in its third step, run it again
+    (it resumes from the save after step 2) and return the final checkpoint."""
+    calls, loss_of = [], qat_ref.loss_of
+
+    def stop_at_the_third_step(*a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return loss_of(*a, **k)
+    monkeypatch.setattr(qat_ref, "loss_of", stop_at_the_third_step)
+    with pytest.raises(KeyboardInterrupt):
+        qat_ref.main(args)
+    monkeypatch.setattr(qat_ref, "loss_of", loss_of)
+    out = args[args.index("--out") + 1]
+    assert torch.load(f"{out}/last.pt", weights_only=False)["step"] == 2
+    qat_ref.main(args)
+    return torch.load(f"{out}/last.pt", weights_only=False)
+
+
 def test_fp32_fine_tuning_resumes_and_exports_with_its_provenance(tmp_path, monkeypatch):
     """`--fp32`: the plain network trains, a run stopped after a save and started again ends with
     the weights of an uninterrupted one, and the export finds the start graph in the manifest and
@@ -120,20 +140,7 @@ def test_fp32_fine_tuning_resumes_and_exports_with_its_provenance(tmp_path, monk
     before = ex.net_from_onnx(start).state_dict()
     assert any(not torch.equal(before[k], v) for k, v in whole["net"].items())
 
-    calls, loss_of = [], qat_ref.loss_of
-
-    def stop_at_the_third_step(*a, **k):
-        calls.append(1)
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return loss_of(*a, **k)
-    monkeypatch.setattr(qat_ref, "loss_of", stop_at_the_third_step)
-    with pytest.raises(KeyboardInterrupt):
-        qat_ref.main(common + ["--out", str(tmp_path / "split")])
-    monkeypatch.setattr(qat_ref, "loss_of", loss_of)
-    assert torch.load(tmp_path / "split" / "last.pt", weights_only=False)["step"] == 2
-    qat_ref.main(common + ["--out", str(tmp_path / "split")])
-    split = torch.load(tmp_path / "split" / "last.pt", weights_only=False)
+    split = stopped_and_resumed(monkeypatch, common + ["--out", str(tmp_path / "split")])
     assert split["step"] == 4 and all(torch.equal(whole["net"][k], v) for k, v in split["net"].items())
 
     manifest = tmp_path / "models.json"
@@ -171,19 +178,7 @@ def test_learned_ranges_resume_and_reach_the_int8_graph(tmp_path, monkeypatch):
     assert whole["precision"] == "int8" and "LSQ" in whole["fine_tuned"]
     assert any(abs(whole["ranges"][k][0] / before[k][0] - 1) > 1e-3 for k in qat.ACT_NAMES)
 
-    calls, loss_of = [], qat_ref.loss_of
-
-    def stop_at_the_third_step(*a, **k):
-        calls.append(1)
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return loss_of(*a, **k)
-    monkeypatch.setattr(qat_ref, "loss_of", stop_at_the_third_step)
-    with pytest.raises(KeyboardInterrupt):
-        qat_ref.main(common + ["--out", str(tmp_path / "split")])
-    monkeypatch.setattr(qat_ref, "loss_of", loss_of)
-    qat_ref.main(common + ["--out", str(tmp_path / "split")])
-    split = torch.load(tmp_path / "split" / "last.pt", weights_only=False)
+    split = stopped_and_resumed(monkeypatch, common + ["--out", str(tmp_path / "split")])
     assert torch.equal(split["log_scales"], whole["log_scales"]) and split["ranges"] == whole["ranges"]
     assert all(torch.equal(whole["net"][k], v) for k, v in split["net"].items())
 
