@@ -43,8 +43,8 @@ to +5.8 % on validation and from +10.4 to +7.0 % on test, still over 2 %. The sh
 was then fine-tuned further against references (`qat_ref.py`: +0.9 / +1.5 %); since the fp32
 model was fine-tuned against them too, the int8 graph was that recipe applied to it (+3.3 /
 +5.8 % over the new fp32 through the library), and since the thirty-ninth session that recipe
-with narrowed pre-LeakyReLU ranges and learned scales (`qat_ref --negative-fraction 0.5
---learn-ranges 2e-3`: +1.5 / +4.9 %).
+with narrowed pre-LeakyReLU ranges and learned scales (`qat_ref --negative-fraction 0.25
+--learn-ranges 2e-3`: +0.9 / +3.8 %).
 """
 import argparse
 import copy

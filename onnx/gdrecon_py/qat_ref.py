@@ -24,7 +24,7 @@ validation relMSE by 36 % in 100 steps).
     $GDRECON_PYTHON -m gdrecon_py.data.render --scene train --size 144x144 --ref-spp 1024 \\
         --perturb-seed 1 --seed 40000 --out ~/.cache/gdrecon/data/qatref --skip-existing \\
         --spp 4,16,64 --perturb 100:110
-    $GDRECON_PYTHON -m gdrecon_py.qat_ref --start START.onnx --out RUN --negative-fraction 0.5 \\
+    $GDRECON_PYTHON -m gdrecon_py.qat_ref --start START.onnx --out RUN --negative-fraction 0.25 \\
         --learn-ranges 2e-3 [--val ~/.cache/gdrecon/data/val]
     $GDRECON_PYTHON -m gdrecon_py.qat quantize --ckpt RUN/last.pt --out onnx/gradnet_int8.onnx
 
