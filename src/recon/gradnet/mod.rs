@@ -37,8 +37,8 @@ pub use model::ModelVariant;
 ///
 /// GradNet's feature model runs fp32 by default: its int8 graph (`onnx/gradnet_int8.onnx`,
 /// quantisation-aware fine-tuned against references, `docs/gradnet.md`, "Reduced precision")
-/// is about 2.6x faster on a CPU with AVX-512 VNNI; its relMSE is 1.5 % (validation) and 5 %
-/// (test) above fp32's in the geometric means, 9-11 % at 64 spp, and up to 1.48x on frames
+/// is about 2.6x faster on a CPU with AVX-512 VNNI; its relMSE is 0.9 % (validation) and 3.8 %
+/// (test) above fp32's in the geometric means, 8-9 % at 64 spp, and up to 1.45x on frames
 /// with emitters in view (`lamps`). Frames without features always run the fp32 no-feature model.
 /// The combiner's head runs int8 by default: `onnx/combiner_int8.onnx` (`docs/benchmarks.md`,
 /// "Seventeenth session").
@@ -200,8 +200,8 @@ impl Params for GradNetConfig {
             GradNetPrecision::NAMES,
             "Arithmetic of the feature model: fp32 (onnx/gradnet.onnx) or int8 \
              (onnx/gradnet_int8.onnx, quantisation-aware fine-tuned against training references; about \
-             2.6x faster with AVX-512 VNNI, relMSE +1.5 % on validation and +5 % on test, +9-11 % \
-             at 64 spp, up to 1.48x on frames with emitters in view); frames \
+             2.6x faster with AVX-512 VNNI, relMSE +0.9 % on validation and +3.8 % on test, +8-9 % \
+             at 64 spp, up to 1.45x on frames with emitters in view); frames \
              without features run the fp32 no-feature model either way; ignored when a model \
              file is given",
             |c| c.precision.index(),
