@@ -144,19 +144,27 @@ def ranges_from_int8(path):
 class _FakeAct(torch.autograd.Function):
     """y = (clamp(round(x / s) + z, 0, 255) - z) s; the gradient passes where x is inside the
     range. x / s rather than x * (1 / s) (torch's fake_quantize_per_tensor_affine): the latter
-    rounds some ties the other way from QuantizeLinear."""
+    rounds some ties the other way from QuantizeLinear. When the scale is learned (it requires a
+    gradient) its gradient is LSQ's (Esser et al. 2020): dy/ds = round(x / s) - x / s inside the
+    range, (qmin - z) or (qmax - z) where x is clipped."""
 
     @staticmethod
     def forward(ctx, x, scale, zp):
-        q = torch.round(x / scale) + zp
+        r = x / scale
+        q = torch.round(r) + zp
         inside = (q >= QMIN_A) & (q <= QMAX_A)
-        ctx.save_for_backward(inside)
+        ctx.save_for_backward(inside, *((r, q, zp) if ctx.needs_input_grad[1] else ()))
         return (q.clamp(QMIN_A, QMAX_A) - zp) * scale
 
     @staticmethod
     def backward(ctx, g):
-        (inside,) = ctx.saved_tensors
-        return g * inside, None, None
+        inside, *lsq = ctx.saved_tensors
+        ds = None
+        if lsq:
+            r, q, zp = lsq
+            step = torch.where(inside, q - zp - r, torch.where(q < QMIN_A, QMIN_A - zp, QMAX_A - zp))
+            ds = (g * step).sum().reshape(())
+        return g * inside, ds, None
 
 
 def net_from_int8(path):
@@ -202,33 +210,10 @@ def net_from_int8(path):
     return net.eval()
 
 
-class _FakeActLSQ(torch.autograd.Function):
-    """`_FakeAct` whose scale is learned (LSQ, Esser et al. 2020): besides the straight-through
-    gradient for x, dy/ds = round(x / s) - x / s inside the range and (qmin - z) or (qmax - z)
-    where x is clipped. The forward pass is `_FakeAct`'s, bit for bit."""
-
-    @staticmethod
-    def forward(ctx, x, scale, zp):
-        r = x / scale
-        q = torch.round(r) + zp
-        below, above = q < QMIN_A, q > QMAX_A
-        ctx.save_for_backward(r, q, below, above, zp)
-        return (q.clamp(QMIN_A, QMAX_A) - zp) * scale
-
-    @staticmethod
-    def backward(ctx, g):
-        r, q, below, above, zp = ctx.saved_tensors
-        inside = ~(below | above)
-        ds = torch.where(inside, q - zp - r, torch.where(below, QMIN_A - zp, QMAX_A - zp))
-        return g * inside, (g * ds).sum().reshape(()), None
-
-
 def fake_act(x, scale, zp):
     """uint8 QuantizeLinear + DequantizeLinear of `x` (float32 math), straight-through inside the
     range. scale: 0-d float32 tensor, zp: 0-d tensor, on x's device; a scale that requires a
     gradient gets LSQ's."""
-    if scale.requires_grad:
-        return _FakeActLSQ.apply(x.float(), scale, zp.float())
     return _FakeAct.apply(x.float(), scale, zp.float())
 
 
