@@ -23,13 +23,23 @@ from .mulaw import mulaw, mulaw_inv, mulaw_signed
 
 N_FEAT = 7
 LRELU = 0.01
+# The encoder's and residual blocks' activation: the release's LeakyReLU (slope LRELU), or ReLU,
+# which ONNX Runtime fuses into an int8 convolution (the int8 graph's variant, docs/gradnet.md,
+# "A ReLU graph for int8"); the decoder's is ReLU in both.
+ACTIVATIONS = ("leaky_relu", "relu")
+
+
+def _act(activation):
+    if activation not in ACTIVATIONS:
+        raise ValueError(f"activation {activation!r} not in {ACTIVATIONS}")
+    return nn.LeakyReLU(LRELU) if activation == "leaky_relu" else nn.ReLU()
 
 
 # ------------------------------------------------------------------------------------------
 # network
 
-def _down(cin, cout):
-    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride=2, padding=1), nn.LeakyReLU(LRELU))
+def _down(cin, cout, activation):
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride=2, padding=1), _act(activation))
 
 
 def _up(cin, cout):
@@ -37,25 +47,31 @@ def _up(cin, cout):
 
 
 class ResBlock(nn.Module):
-    def __init__(self, ch):
+    def __init__(self, ch, activation="leaky_relu"):
         super().__init__()
         self.c1 = nn.Conv2d(ch, ch, 3, padding=1)
         self.c2 = nn.Conv2d(ch, ch, 3, padding=1)
+        self.relu = activation == "relu"
 
     def forward(self, x):
-        return x + self.c2(F.leaky_relu(self.c1(x), LRELU))
+        y = self.c1(x)
+        return x + self.c2(F.relu(y) if self.relu else F.leaky_relu(y, LRELU))
 
 
 class GradNet(nn.Module):
     """Two-branch encoder (data / gradient), 4 residual blocks at 256 channels, decoder of
-    transposed convs with dual skip connections. `data_ch` = 8 (full) or 1 (no features)."""
+    transposed convs with dual skip connections. `data_ch` = 8 (full) or 1 (no features);
+    `activation` (ACTIVATIONS) the encoder's and residual blocks'; the parameters are the same
+    for both."""
 
-    def __init__(self, data_ch=1 + N_FEAT, grad_ch=2, n_res=4):
+    def __init__(self, data_ch=1 + N_FEAT, grad_ch=2, n_res=4, activation="leaky_relu"):
         super().__init__()
         self.data_ch = data_ch
-        self.d1, self.d2, self.d3 = _down(data_ch, 32), _down(32, 64), _down(64, 128)
-        self.g1, self.g2, self.g3 = _down(grad_ch, 32), _down(32, 64), _down(64, 128)
-        self.res = nn.Sequential(*[ResBlock(256) for _ in range(n_res)])
+        self.activation = activation
+        a = activation
+        self.d1, self.d2, self.d3 = _down(data_ch, 32, a), _down(32, 64, a), _down(64, 128, a)
+        self.g1, self.g2, self.g3 = _down(grad_ch, 32, a), _down(32, 64, a), _down(64, 128, a)
+        self.res = nn.Sequential(*[ResBlock(256, a) for _ in range(n_res)])
         self.u1 = _up(512, 128)
         self.u2 = _up(256, 64)
         self.u3 = _up(128, 32)

@@ -96,6 +96,49 @@ PRE_LRELU = {**{f"/{b}{i}/{b}{i}.0/Conv_output_0": f"/{b}{i}/{b}{i}.1/LeakyRelu_
              **{f"/res/res.{i}/c1/Conv_output_0": f"/res/res.{i}/LeakyRelu_output_0" for i in range(4)}}
 
 
+# The ReLU graph (`gradnet.GradNet(activation="relu")`, docs/gradnet.md, "A ReLU graph for int8"):
+# ONNX Runtime's quantiser removes each ReLU and quantises its convolution's output once, at the
+# ReLU's range (zero point 0, so the clamp is the ReLU), under the ReLU's output name; each
+# PRE_LRELU pair is one tensor there. {LeakyReLU output: the ReLU graph's tensor}
+RELU_OF = {v: v.replace("LeakyRelu", "Relu") for v in PRE_LRELU.values()}
+ACT_NAMES_RELU = tuple(RELU_OF.get(k, k) for k in ACT_NAMES if k not in PRE_LRELU)
+
+
+def act_names(activation):
+    """The tensors the int8 graph of a GradNet with this encoder activation quantises."""
+    return ACT_NAMES_RELU if activation == "relu" else ACT_NAMES
+
+
+def graph_activation(meta):
+    """A graph's encoder activation, from its metadata (`export.export_model` writes it for the
+    ReLU graph; absent means the release's LeakyReLU)."""
+    return meta.get("activation", "leaky_relu")
+
+
+def relu_ranges(ranges):
+    """The ReLU graph's ranges from a LeakyReLU graph's `ranges` (ACT_NAMES): each activation's
+    positive side kept at its step count, zero point 0 (s, z) -> (s (255 - z) / 255, 0); the other
+    tensors' unchanged."""
+    out = {}
+    for k in ACT_NAMES_RELU:
+        if k in RELU_OF.values():
+            s, z = ranges[k.replace("Relu", "LeakyRelu")]
+            out[k] = (float(np.float32(s * (QMAX_A - z) / QMAX_A)), 0)
+        else:
+            out[k] = ranges[k]
+    return out
+
+
+def with_activation(net, activation):
+    """A GradNet with `net`'s weights and the encoder activation `activation` (`net` itself if it
+    has it already): the ReLU graph starts from a LeakyReLU graph's weights."""
+    if net.activation == activation:
+        return net
+    out = gn.GradNet(data_ch=net.data_ch, activation=activation)
+    out.load_state_dict(net.state_dict())
+    return out.train(net.training)
+
+
 def narrow_negatives(ranges, fraction):
     """`ranges` with each PRE_LRELU tensor's negative side cut to `fraction` of its length, the
     positive side kept, so that the 256 steps are finer: (s, z) -> (s', z') with
@@ -135,10 +178,11 @@ def ranges_from_int8(path):
             if s.size != 1 or z.dtype != np.uint8:
                 raise ValueError(f"{path}: {n.input[0]} is not per-tensor uint8")
             out[n.input[0]] = (float(s.reshape(())), int(z.reshape(())))
-    missing = [k for k in ACT_NAMES if k not in out]
+    names = act_names(graph_activation({p.key: p.value for p in m.metadata_props}))
+    missing = [k for k in names if k not in out]
     if missing:
         raise ValueError(f"{path}: no quantisation of {missing[:3]}: not export.py's subpixel-poly graph?")
-    return {k: out[k] for k in ACT_NAMES}
+    return {k: out[k] for k in names}
 
 
 class _FakeAct(torch.autograd.Function):
@@ -205,7 +249,7 @@ def net_from_int8(path):
         named["out.conv.weight"] = torch.from_numpy(output_layer.phase_form(layer["weight"]))
         named["out.conv.bias"] = torch.full((4,), float(layer["bias"]))
     sd = unswap_state_dict(named, meta.get("deconv", "convtranspose"), int(meta.get("data_channels", "8")))
-    net = gn.GradNet()
+    net = gn.GradNet(activation=graph_activation(meta))
     net.load_state_dict(sd)
     return net.eval()
 
@@ -242,26 +286,27 @@ def fake_weight(w, transposed):
 
 class QATGradNet(nn.Module):
     """GradNet's forward pass with the int8 graph's quantisation simulated (`quant` True) or not
-    (then bit-for-bit `net`'s). `ranges`: {ONNX name: (scale, zero point)} for ACT_NAMES.
-    `learn_ranges`: the scales become a parameter (`log_scales`, LSQ's gradient; a crop shares
-    its shuffle input's, as deployed), the zero points stay."""
+    (then bit-for-bit `net`'s). `ranges`: {ONNX name: (scale, zero point)} for the tensors of
+    `act_names(net.activation)`. `learn_ranges`: the scales become a parameter (`log_scales`,
+    LSQ's gradient; a crop shares its shuffle input's, as deployed), the zero points stay."""
 
     def __init__(self, net, ranges, learn_ranges=False):
         super().__init__()
         self.net = net
         self.quant = True
+        self.names = act_names(net.activation)
         ranges = deployed(ranges)
-        s = torch.tensor([ranges[k][0] for k in ACT_NAMES], dtype=torch.float32)
-        z = torch.tensor([ranges[k][1] for k in ACT_NAMES], dtype=torch.int32)
+        s = torch.tensor([ranges[k][0] for k in self.names], dtype=torch.float32)
+        z = torch.tensor([ranges[k][1] for k in self.names], dtype=torch.int32)
         self.register_buffer("scales", s)
         self.register_buffer("zps", z)
-        self._index = {k: i for i, k in enumerate(ACT_NAMES)}
+        self._index = {k: i for i, k in enumerate(self.names)}
         # the tensor whose scale each one uses (itself, or for a crop its shuffle input)
-        self._tie = [self._index[SHARED.get(k, k)] for k in ACT_NAMES]
+        self._tie = [self._index[SHARED.get(k, k)] for k in self.names]
         self.log_scales = nn.Parameter(torch.log(s)) if learn_ranges else None
 
     def scale(self, i):
-        """The scale of ACT_NAMES[i] (0-d float32 tensor)."""
+        """The scale of self.names[i] (0-d float32 tensor)."""
         if self.log_scales is None:
             return self.scales[i]
         return torch.exp(self.log_scales[self._tie[i]])
@@ -269,7 +314,7 @@ class QATGradNet(nn.Module):
     def ranges(self):
         """{ONNX name: (scale, zero point)} as simulated now (float32 scales), `deployed` form."""
         with torch.no_grad():
-            return {k: (float(self.scale(i)), int(self.zps[i])) for i, k in enumerate(ACT_NAMES)}
+            return {k: (float(self.scale(i)), int(self.zps[i])) for i, k in enumerate(self.names)}
 
     @property
     def data_ch(self):
@@ -290,14 +335,19 @@ class QATGradNet(nn.Module):
     def _down(self, name, x):
         conv = getattr(self.net, name)[0]
         y = F.conv2d(x, self._w(conv, name), conv.bias, stride=2, padding=1)
+        if self.net.activation == "relu":
+            return self._a(F.relu(y), f"/{name}/{name}.1/Relu_output_0")
         y = self._a(y, f"/{name}/{name}.0/Conv_output_0")
         return self._a(F.leaky_relu(y, gn.LRELU), f"/{name}/{name}.1/LeakyRelu_output_0")
 
     def _res(self, i, x):
         blk = self.net.res[i]
         p = f"/res/res.{i}/"
-        y = self._a(F.conv2d(x, self._w(blk.c1, "c1"), blk.c1.bias, padding=1), p + "c1/Conv_output_0")
-        y = self._a(F.leaky_relu(y, gn.LRELU), p + "LeakyRelu_output_0")
+        y = F.conv2d(x, self._w(blk.c1, "c1"), blk.c1.bias, padding=1)
+        if self.net.activation == "relu":
+            y = self._a(F.relu(y), p + "Relu_output_0")
+        else:
+            y = self._a(F.leaky_relu(self._a(y, p + "c1/Conv_output_0"), gn.LRELU), p + "LeakyRelu_output_0")
         y = self._a(F.conv2d(y, self._w(blk.c2, "c2"), blk.c2.bias, padding=1), p + "c2/Conv_output_0")
         return self._a(x + y, p + "Add_output_0")
 
@@ -325,7 +375,7 @@ class QATGradNet(nn.Module):
             # the four output phases (row parity a, column parity b) are four tensors there
             q = u.clone()
             for k, (a, b) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
-                q[..., a::2, b::2] = self._a(u[..., a::2, b::2], ACT_NAMES[-5 + k])
+                q[..., a::2, b::2] = self._a(u[..., a::2, b::2], self.names[-5 + k])
             u = self._a(q, "/u3/Concat_output_0")
         out = self.net.out
         return F.relu(F.conv2d(u, out.weight, out.bias, padding=1))
@@ -515,7 +565,8 @@ def quantize_ckpt(args):
     from .train_gradnet import merge_parts
     ck = merge_parts(args.ckpt) if not args.ckpt.endswith(".pt") else torch.load(args.ckpt, map_location="cpu",
                                                                                  weights_only=False)
-    net = gn.GradNet()
+    activation = ck.get("activation", "leaky_relu")
+    net = gn.GradNet(activation=activation)
     net.load_state_dict(ck["net"])
     net.eval()
     if ck.get("ranges"):
@@ -536,13 +587,13 @@ def quantize_ckpt(args):
     feeds = qz.calibration_inputs(files, use_features=True)
     with tempfile.TemporaryDirectory() as tmp:
         src = os.path.join(tmp, "gradnet_qat_fp32.onnx")
-        export_model(net, src, {"variant": "full", "qat_steps": str(ck.get("step", 0))})
+        export_model(net, src, {"variant": "full", "qat_steps": str(ck.get("step", 0))})  # + its activation
         m = qz.quantize(src, args.out, feeds, exclude=qz.DEFAULT_EXCLUDE.split(","), method="percentile",
                         overrides=overrides if not args.recalibrate else None)
         src_sha = qz.sha256_file(src)
     got = ranges_from_int8(args.out)
     if not args.recalibrate:
-        bad = [k for k in ACT_NAMES if abs(got[k][0] - ranges[k][0]) > 1e-12 * max(1.0, ranges[k][0])
+        bad = [k for k in act_names(activation) if abs(got[k][0] - ranges[k][0]) > 1e-12 * max(1.0, ranges[k][0])
                or got[k][1] != ranges[k][1]]
         if bad:
             raise SystemExit(f"{args.out}: the overrides did not hold for {bad[:3]}")
@@ -574,6 +625,7 @@ def quantize_ckpt(args):
              "ir_version": m.ir_version, "opset": m.opset_import[0].version,
              "inputs": {"data": ["N", 8, "H", "W"], "grad": ["N", 2, "H", "W"]},
              "outputs": output_layer.manifest_outputs(m),
+             **({"activation": activation} if activation != "leaky_relu" else {}),
              "source": {"file": "gradnet.onnx", "sha256": teacher_sha,
                         "fine_tuned": ck.get("fine_tuned", "quantisation-aware (gdrecon_py.qat), distilled from the fp32 graph"),
                         "qat_steps": ck.get("step"), "qat_seconds": round(ck.get("elapsed", 0.0)),

@@ -146,6 +146,10 @@ def main(argv=None):
     ap.add_argument("--teacher", default="", help="the fp32 graph of the distillation term and the weight "
                     "(default: onnx/gradnet.onnx; with --fp32, --start)")
     ap.add_argument("--fp32", action="store_true", help="fine-tune the fp32 network (no quantisation simulated)")
+    ap.add_argument("--relu", action="store_true",
+                    help="the ReLU graph: the encoder's and residual blocks' LeakyReLU replaced by ReLU, which "
+                         "ONNX Runtime fuses into the int8 convolutions (one quantisation where the LeakyReLU "
+                         "graph has two); from a LeakyReLU start graph its ranges become qat.relu_ranges'")
     ap.add_argument("--negative-fraction", type=float, default=1.0, metavar="F",
                     help="start with each pre-LeakyReLU convolution output's negative range cut to this "
                     "fraction (qat.narrow_negatives; 1: the start graph's ranges)")
@@ -167,8 +171,10 @@ def main(argv=None):
     ap.add_argument("--val-every", type=int, default=100)
     ap.add_argument("--save-every", type=int, default=50)
     args = ap.parse_args(argv)
-    if args.fp32 and (args.learn_ranges > 0 or args.negative_fraction != 1):
-        raise SystemExit("--learn-ranges, --negative-fraction: an fp32 run has no activation ranges")
+    if args.fp32 and (args.learn_ranges > 0 or args.negative_fraction != 1 or args.relu):
+        raise SystemExit("--learn-ranges, --negative-fraction, --relu: an fp32 run has no activation ranges")
+    if args.relu and args.negative_fraction != 1:
+        raise SystemExit("--negative-fraction: the ReLU graph quantises no convolution output before its activation")
     from .export import net_from_onnx
     from .quantize import sha256_file
     if not args.teacher:
@@ -183,8 +189,15 @@ def main(argv=None):
     if args.fp32:
         student = net_from_onnx(args.start)
     else:
-        ranges = qat.narrow_negatives(qat.ranges_from_int8(args.start), args.negative_fraction)
-        student = qat.QATGradNet(qat.net_from_int8(args.start), ranges, learn_ranges=args.learn_ranges > 0)
+        start = qat.net_from_int8(args.start)
+        ranges = qat.ranges_from_int8(args.start)
+        if start.activation == "relu" and args.negative_fraction != 1:
+            raise SystemExit(f"--negative-fraction: {args.start} is a ReLU graph")
+        if args.relu and start.activation != "relu":
+            ranges = qat.relu_ranges(ranges)
+        ranges = qat.narrow_negatives(ranges, args.negative_fraction)
+        start = qat.with_activation(start, "relu" if args.relu else start.activation)
+        student = qat.QATGradNet(start, ranges, learn_ranges=args.learn_ranges > 0)
     teacher = net_from_onnx(args.teacher).eval()
     for p in teacher.parameters():
         p.requires_grad_(False)
@@ -226,6 +239,7 @@ def main(argv=None):
             f"fp32 graph, from an int8 graph (sha256 {start_sha})"
             + (f", pre-LeakyReLU negative ranges cut to {args.negative_fraction:g}"
                if args.negative_fraction != 1 else "")
+            + (", its LeakyReLUs replaced by ReLUs (the ReLU graph)" if args.relu else "")
             + (", activation ranges learned (LSQ)" if args.learn_ranges > 0 else ""))
 
     def save():
@@ -235,8 +249,10 @@ def main(argv=None):
               "model_sha256": teacher_sha, "start_sha256": start_sha, "frames": names, "device_name": "cpu",
               "fine_tuned": what}
         if not args.fp32:
-            # the ranges simulated (`qat quantize` writes these into the graph)
+            # the ranges simulated (`qat quantize` writes these into the graph) and the network
+            # they are of
             ck["ranges"] = student.ranges()
+            ck["activation"] = student.net.activation
             if student.log_scales is not None:
                 ck["log_scales"] = student.log_scales.detach().clone()
         torch.save(ck, last + ".tmp")

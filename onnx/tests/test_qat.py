@@ -102,7 +102,7 @@ def test_simulation_is_onnxruntime_int8():
     assert np.mean(d8) < 0.1 * np.mean(d32), (d8, d32)
 
 
-def test_run_resumes_exactly(tmp_path):
+def test_run_resumes_exactly(tmp_path, leaky_int8):
     """Six steps in one go and three + a resumed three give the same weights and the same log."""
     rng = np.random.default_rng(3)
     H = W = 40
@@ -116,7 +116,7 @@ def test_run_resumes_exactly(tmp_path):
         frames.append(pack.round_half(torch.cat([img, dx, dy, torch.rand(1, 7, H, W)], 1).numpy()[0]))
     pack.write(str(tmp_path / "t.xz"), {f"{W}x{H}": np.stack(frames)}, {"kind": "train"})
     ranges = tmp_path / "r.json"
-    ranges.write_text(json.dumps({"ranges": qat.ranges_from_int8(INT8)}))
+    ranges.write_text(json.dumps({"ranges": qat.ranges_from_int8(leaky_int8)}))
 
     def run(out, *extra):
         qat.main(["train", "--train", str(tmp_path / "t.xz"), "--model", FP32, "--ranges", str(ranges),
@@ -172,27 +172,28 @@ def test_learned_ranges_start_at_the_graph_and_a_crop_follows_its_shuffle():
     fixed = qat.QATGradNet(qat.net_from_int8(INT8), qat.ranges_from_int8(INT8)).eval()
     want = qat.deployed(qat.ranges_from_int8(INT8))
     got = sim.ranges()
-    for k in qat.ACT_NAMES:
+    assert tuple(got) == sim.names == qat.act_names(sim.net.activation)
+    for k in sim.names:
         assert abs(got[k][0] - want[k][0]) <= 1e-6 * want[k][0] and got[k][1] == want[k][1], k
     d, g = inputs(4)
     with torch.no_grad():
         assert (sim.eval()(d, g) - fixed(d, g)).abs().max() < 1e-3
     sim.train()
     sim(d, g).mean().backward()
-    used = {sim._tie[i] for i in range(len(qat.ACT_NAMES))}
+    used = {sim._tie[i] for i in range(len(sim.names))}
     assert all(float(sim.log_scales.grad[i]) != 0 for i in used)
     with torch.no_grad():
-        sim.log_scales.add_(0.1 * torch.arange(len(qat.ACT_NAMES)))
+        sim.log_scales.add_(0.1 * torch.arange(len(sim.names)))
     moved = sim.ranges()
     for crop, shuffle in qat.SHARED.items():
         assert moved[crop] == moved[shuffle] and moved[crop][0] != got[crop][0]
 
 
-def test_narrowed_negatives_keep_the_positive_side_with_a_finer_step():
+def test_narrowed_negatives_keep_the_positive_side_with_a_finer_step(leaky_int8):
     """`narrow_negatives`: each pre-LeakyReLU convolution output keeps its positive extent (to a
     step), its negative extent becomes the fraction asked (to a step) and its step is finer;
     every other range is untouched; 1 is the identity and a fraction outside (0, 1] is refused."""
-    r = qat.ranges_from_int8(INT8)
+    r = qat.ranges_from_int8(leaky_int8)
     n = qat.narrow_negatives(r, 0.5)
     assert set(qat.PRE_LRELU) <= set(qat.ACT_NAMES) and set(qat.PRE_LRELU.values()) <= set(qat.ACT_NAMES)
     for k in qat.ACT_NAMES:
@@ -207,3 +208,87 @@ def test_narrowed_negatives_keep_the_positive_side_with_a_finer_step():
     for bad in (0.0, 1.5):
         with pytest.raises(ValueError, match="negative fraction"):
             qat.narrow_negatives(r, bad)
+
+
+def relu_graph(tmp_path, leaky):
+    """The ReLU graph of the LeakyReLU int8 graph `leaky`'s weights, quantised as `qat quantize`
+    does (its ranges fixed by overrides to `relu_ranges` of `leaky`'s); returns its path."""
+    from gdrecon_py import quantize as qz
+    from gdrecon_py.export import export_model
+    net = qat.with_activation(qat.net_from_int8(leaky), "relu")
+    ranges = qat.relu_ranges(qat.ranges_from_int8(leaky))
+    src, out = str(tmp_path / "relu.onnx"), str(tmp_path / "relu_int8.onnx")
+    export_model(net, src)
+    feeds = [{"data": d.numpy(), "grad": g.numpy()} for d, g in (inputs(s) for s in (7, 8))]
+    overrides = {k: [{"scale": np.array(s, np.float32), "zero_point": np.array(z, np.uint8)}]
+                 for k, (s, z) in qat.deployed(ranges).items()}
+    qz.quantize(src, out, feeds, exclude=qz.DEFAULT_EXCLUDE.split(","), method="percentile", overrides=overrides)
+    return out
+
+
+def test_relu_graph_quantises_each_activation_once_and_is_simulated(tmp_path, leaky_int8):
+    """The ReLU graph: ONNX Runtime's quantiser folds every encoder and residual ReLU into its
+    convolution's output quantisation (31 tensors, the 41 less the ten pre-LeakyReLU ones, each
+    at zero point 0), the graph says it is the ReLU one, and the simulation is its int8 output up
+    to ties (as for the LeakyReLU graph). The simulation is of the graph's own weights: its
+    int32 biases are rounded at the new input scales, and that alone (a shift under half a bias
+    step) moved the output by 0.001 when simulated with the start graph's biases, the half of
+    the int8 graph's distance from its own fp32 network: rounding is chaotic through the
+    residual blocks (a flip fans out to 9 x 256 sums)."""
+    import onnx
+    from gdrecon_py import pipeline as pl
+    path = relu_graph(tmp_path, leaky_int8)
+    sim = qat.QATGradNet(qat.net_from_int8(path), qat.ranges_from_int8(path)).eval()
+    m = onnx.load(path)
+    assert {p.key: p.value for p in m.metadata_props}["activation"] == "relu"
+    assert not any(n.op_type == "LeakyRelu" for n in m.graph.node)
+    got = qat.ranges_from_int8(path)
+    assert tuple(got) == qat.ACT_NAMES_RELU and len(got) == len(qat.ACT_NAMES) - len(qat.PRE_LRELU)
+    assert all(got[k][1] == 0 for k in qat.RELU_OF.values())
+    assert qat.net_from_int8(path).activation == "relu"
+    fp32 = net_from_onnx(FP32)
+    s8 = pl.ort_runner(path)
+    d8, d32 = [], []
+    for seed in range(3):
+        d, g = inputs(seed)
+        o8 = s8(d.numpy(), g.numpy())
+        with torch.no_grad():
+            d8.append(np.abs(sim(d, g).numpy() - o8).mean())
+            d32.append(np.abs(fp32(d, g).numpy() - o8).mean())
+    assert np.mean(d8) < 0.1 * np.mean(d32), (d8, d32)
+
+
+def test_relu_ranges_keep_each_positive_side(leaky_int8):
+    """`relu_ranges`: a LeakyReLU output's range becomes its positive side at zero point 0 (to a
+    step), the convolution output before it is gone, every other range is untouched; the
+    simulation off is the ReLU network exactly."""
+    r = qat.ranges_from_int8(leaky_int8)
+    rr = qat.relu_ranges(r)
+    assert tuple(rr) == qat.ACT_NAMES_RELU
+    for k in qat.ACT_NAMES_RELU:
+        if k in qat.RELU_OF.values():
+            s, z = r[k.replace("Relu", "LeakyRelu")]
+            assert rr[k][1] == 0 and abs(rr[k][0] * 255 - s * (255 - z)) <= 1e-6 * s * 255, k
+        else:
+            assert rr[k] == r[k], k
+    net = qat.with_activation(qat.net_from_int8(leaky_int8), "relu")
+    sim = qat.QATGradNet(net, rr).eval()
+    sim.quant = False
+    d, g = inputs(4)
+    with torch.no_grad():
+        assert torch.equal(sim(d, g), net(d, g))
+        assert not torch.equal(net(d, g), qat.net_from_int8(leaky_int8)(d, g))
+
+
+def test_the_shipped_int8_graph_is_the_relu_graph():
+    """`onnx/gradnet_int8.onnx` is the ReLU graph since the fortieth session (docs/gradnet.md):
+    no LeakyReLU left, each activation quantised once at zero point 0, the teacher the fp32
+    LeakyReLU model (`onnx/gradnet.onnx`, whose metadata names no activation)."""
+    import onnx
+    m = onnx.load(INT8)
+    meta = {p.key: p.value for p in m.metadata_props}
+    assert meta["activation"] == "relu" and not any(n.op_type == "LeakyRelu" for n in m.graph.node)
+    got = qat.ranges_from_int8(INT8)
+    assert tuple(got) == qat.ACT_NAMES_RELU and all(got[k][1] == 0 for k in qat.RELU_OF.values())
+    assert "activation" not in {p.key for p in onnx.load(FP32).metadata_props}
+    assert net_from_onnx(FP32).activation == "leaky_relu"

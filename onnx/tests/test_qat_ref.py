@@ -176,7 +176,7 @@ def test_learned_ranges_resume_and_reach_the_int8_graph(tmp_path, monkeypatch):
     whole = torch.load(tmp_path / "whole" / "last.pt", weights_only=False)
     before = qat.deployed(qat.ranges_from_int8(start))
     assert whole["precision"] == "int8" and "LSQ" in whole["fine_tuned"]
-    assert any(abs(whole["ranges"][k][0] / before[k][0] - 1) > 1e-3 for k in qat.ACT_NAMES)
+    assert any(abs(whole["ranges"][k][0] / before[k][0] - 1) > 1e-3 for k in before)
 
     split = stopped_and_resumed(monkeypatch, common + ["--out", str(tmp_path / "split")])
     assert torch.equal(split["log_scales"], whole["log_scales"]) and split["ranges"] == whole["ranges"]
@@ -186,18 +186,18 @@ def test_learned_ranges_resume_and_reach_the_int8_graph(tmp_path, monkeypatch):
     qat.main(["quantize", "--ckpt", str(tmp_path / "whole" / "last.pt"), "--out", out, "--data", str(data),
               "--frames", "2", "--no-manifest"])
     got = qat.ranges_from_int8(out)
-    for k in qat.ACT_NAMES:
+    assert tuple(got) == tuple(before)
+    for k in got:
         assert abs(got[k][0] - whole["ranges"][k][0]) <= 1e-12 and got[k][1] == whole["ranges"][k][1], k
 
 
-def test_a_run_starts_from_the_narrowed_ranges(tmp_path):
+def test_a_run_starts_from_the_narrowed_ranges(tmp_path, leaky_int8):
     """`--negative-fraction`: the ranges simulated, and saved for `qat quantize`, are the start
     graph's narrowed (`qat.narrow_negatives`), and a fixed-range run keeps them."""
-    from gdrecon_py import ONNX_DIR
     data = tmp_path / "data"
     data.mkdir()
     _bundles(data)
-    start = f"{ONNX_DIR}/gradnet_int8.onnx"
+    start = leaky_int8
     qat_ref.main(["--start", start, "--data", str(data), "--skip", "", "--batch", "1", "--steps", "1",
                   "--patch", "16", "--warmup", "1", "--threads", "1", "--negative-fraction", "0.5",
                   "--out", str(tmp_path / "run")])
@@ -208,3 +208,37 @@ def test_a_run_starts_from_the_narrowed_ranges(tmp_path):
     for flag in (["--negative-fraction", "0.5"], ["--learn-ranges", "1e-3"]):
         with pytest.raises(SystemExit, match="fp32 run has no activation ranges"):
             qat_ref.main(["--fp32", "--start", start, "--out", str(tmp_path / "fp32"), *flag])
+
+
+def test_a_relu_run_starts_from_the_relu_ranges_and_quantizes_to_the_relu_graph(tmp_path, leaky_int8):
+    """`--relu` from a LeakyReLU int8 graph: the student is the ReLU network with the start
+    graph's weights, its ranges `qat.relu_ranges` of the start graph's; the checkpoint says so and
+    `qat quantize` makes the ReLU graph (its metadata, its 31 tensors at the checkpoint's ranges),
+    from which a further run continues without `--relu`. `--negative-fraction` is refused with
+    it (no tensor before an activation is quantised) and for a ReLU start graph."""
+    import onnx
+    data = tmp_path / "data"
+    data.mkdir()
+    _bundles(data)
+    start = leaky_int8
+    common = ["--data", str(data), "--skip", "", "--batch", "1", "--steps", "1", "--patch", "16",
+              "--warmup", "1", "--threads", "1"]
+    qat_ref.main(["--start", start, "--relu", "--out", str(tmp_path / "run"), *common])
+    ck = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
+    want = qat.deployed(qat.relu_ranges(qat.ranges_from_int8(start)))
+    assert ck["activation"] == "relu" and "ReLU graph" in ck["fine_tuned"]
+    assert ck["ranges"] == {k: (float(torch.tensor(want[k][0])), want[k][1]) for k in qat.ACT_NAMES_RELU}
+    out = str(tmp_path / "relu_int8.onnx")
+    qat.main(["quantize", "--ckpt", str(tmp_path / "run" / "last.pt"), "--out", out, "--data", str(data),
+              "--frames", "2", "--no-manifest"])
+    assert {p.key: p.value for p in onnx.load(out).metadata_props}["activation"] == "relu"
+    got = qat.ranges_from_int8(out)
+    assert all(abs(got[k][0] - ck["ranges"][k][0]) <= 1e-12 and got[k][1] == ck["ranges"][k][1] for k in got)
+    qat_ref.main(["--start", out, "--out", str(tmp_path / "again"), *common])
+    assert torch.load(tmp_path / "again" / "last.pt", weights_only=False)["activation"] == "relu"
+    with pytest.raises(SystemExit, match="ReLU graph quantises no convolution output"):
+        qat_ref.main(["--start", start, "--relu", "--negative-fraction", "0.5", "--out", str(tmp_path / "x"), *common])
+    with pytest.raises(SystemExit, match="is a ReLU graph"):
+        qat_ref.main(["--start", out, "--negative-fraction", "0.5", "--out", str(tmp_path / "y"), *common])
+    with pytest.raises(SystemExit, match="fp32 run has no activation ranges"):
+        qat_ref.main(["--fp32", "--relu", "--start", start, "--out", str(tmp_path / "fp32")])
