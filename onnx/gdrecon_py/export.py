@@ -332,7 +332,7 @@ def export_model(net, path, metadata=None, deconv=DEFAULT_DECONV):
         m.ir_version = MAX_IR
     meta = {"mu": "16", "data_channels": str(dch), "size_multiple": "8", "deconv": deconv,
             "producer_note": "gdrecon GradNet (Guo et al. 2019); see onnx/README.md"}
-    if getattr(net, "activation", "leaky_relu") != "leaky_relu":
+    if net.activation != "leaky_relu":
         # only then: the release's graphs keep their metadata (and files) as they were
         meta["activation"] = net.activation
     meta.update(metadata or {})
@@ -367,7 +367,7 @@ def net_from_onnx(path):
         sd = unswap_state_dict(inits, meta.get("deconv", "convtranspose"), dch)
     except KeyError as e:
         raise KeyError(f"{path}: initializers missing: {e}") from None
-    net = gn.GradNet(data_ch=dch, activation=meta.get("activation", "leaky_relu"))
+    net = gn.GradNet(data_ch=dch, activation=gn.activation_of(meta))
     missing = [k for k in net.state_dict() if k not in sd]
     if missing:
         raise KeyError(f"{path}: initializers missing for {missing[:5]}")

@@ -35,6 +35,12 @@ def _act(activation):
     return nn.LeakyReLU(LRELU) if activation == "leaky_relu" else nn.ReLU()
 
 
+def activation_of(meta):
+    """An exported graph's encoder activation, from its metadata (`export.export_model` writes it
+    for ReLU only; absent means the release's LeakyReLU)."""
+    return meta.get("activation", "leaky_relu")
+
+
 # ------------------------------------------------------------------------------------------
 # network
 

@@ -109,12 +109,6 @@ def act_names(activation):
     return ACT_NAMES_RELU if activation == "relu" else ACT_NAMES
 
 
-def graph_activation(meta):
-    """A graph's encoder activation, from its metadata (`export.export_model` writes it for the
-    ReLU graph; absent means the release's LeakyReLU)."""
-    return meta.get("activation", "leaky_relu")
-
-
 def relu_ranges(ranges):
     """The ReLU graph's ranges from a LeakyReLU graph's `ranges` (ACT_NAMES): each activation's
     positive side kept at its step count, zero point 0 (s, z) -> (s (255 - z) / 255, 0); the other
@@ -178,7 +172,7 @@ def ranges_from_int8(path):
             if s.size != 1 or z.dtype != np.uint8:
                 raise ValueError(f"{path}: {n.input[0]} is not per-tensor uint8")
             out[n.input[0]] = (float(s.reshape(())), int(z.reshape(())))
-    names = act_names(graph_activation({p.key: p.value for p in m.metadata_props}))
+    names = act_names(gn.activation_of({p.key: p.value for p in m.metadata_props}))
     missing = [k for k in names if k not in out]
     if missing:
         raise ValueError(f"{path}: no quantisation of {missing[:3]}: not export.py's subpixel-poly graph?")
@@ -249,7 +243,7 @@ def net_from_int8(path):
         named["out.conv.weight"] = torch.from_numpy(output_layer.phase_form(layer["weight"]))
         named["out.conv.bias"] = torch.full((4,), float(layer["bias"]))
     sd = unswap_state_dict(named, meta.get("deconv", "convtranspose"), int(meta.get("data_channels", "8")))
-    net = gn.GradNet(activation=graph_activation(meta))
+    net = gn.GradNet(activation=gn.activation_of(meta))
     net.load_state_dict(sd)
     return net.eval()
 
@@ -587,7 +581,7 @@ def quantize_ckpt(args):
     feeds = qz.calibration_inputs(files, use_features=True)
     with tempfile.TemporaryDirectory() as tmp:
         src = os.path.join(tmp, "gradnet_qat_fp32.onnx")
-        export_model(net, src, {"variant": "full", "qat_steps": str(ck.get("step", 0))})  # + its activation
+        export_model(net, src, {"variant": "full", "qat_steps": str(ck.get("step", 0))})
         m = qz.quantize(src, args.out, feeds, exclude=qz.DEFAULT_EXCLUDE.split(","), method="percentile",
                         overrides=overrides if not args.recalibrate else None)
         src_sha = qz.sha256_file(src)

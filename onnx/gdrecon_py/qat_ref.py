@@ -58,6 +58,7 @@ import numpy as np
 import torch
 
 from . import ONNX_DIR, pack, qat
+from . import gradnet as gn
 from . import pipeline as pl
 from .mulaw import mulaw_inv
 
@@ -175,6 +176,10 @@ def main(argv=None):
         raise SystemExit("--learn-ranges, --negative-fraction, --relu: an fp32 run has no activation ranges")
     if args.relu and args.negative_fraction != 1:
         raise SystemExit("--negative-fraction: the ReLU graph quantises no convolution output before its activation")
+    if not args.fp32 and args.negative_fraction != 1:
+        import onnx
+        if gn.activation_of({p.key: p.value for p in onnx.load(args.start).metadata_props}) == "relu":
+            raise SystemExit(f"--negative-fraction: {args.start} is a ReLU graph")
     from .export import net_from_onnx
     from .quantize import sha256_file
     if not args.teacher:
@@ -191,8 +196,6 @@ def main(argv=None):
     else:
         start = qat.net_from_int8(args.start)
         ranges = qat.ranges_from_int8(args.start)
-        if start.activation == "relu" and args.negative_fraction != 1:
-            raise SystemExit(f"--negative-fraction: {args.start} is a ReLU graph")
         if args.relu and start.activation != "relu":
             ranges = qat.relu_ranges(ranges)
         ranges = qat.narrow_negatives(ranges, args.negative_fraction)
