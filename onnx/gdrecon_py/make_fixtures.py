@@ -16,7 +16,8 @@ export) and the numpy reference pipeline (gdrecon_py/pipeline.py):
   emitter.exr, emitter_out.npy  (--emitter, no checkpoints needed) the guard frame
                                 tests/data/guard/lamps_16spp.exr (bulbs of radiance up to 424 in
                                 view) through pipeline.reconstruct with onnx/gradnet.onnx run by
-                                onnxruntime: step 6b (keep_emitters) is exercised
+                                onnxruntime: steps 6b (emitters) and 7's bias limit
+                                (beyond) are exercised
   <crop>_int8_net.npy           (--int8, no checkpoints needed) onnx/gradnet_int8.onnx run by
                                 onnxruntime on <crop>_data / _grad, one channel at a time:
                                 3 x 1 x Hp x Wp
@@ -109,11 +110,12 @@ def emitter_fixture(out_dir):
     src = os.path.join(REPO, "tests", "data", "guard", "lamps_16spp.exr")
     fr = pl.read_frame(src)
     out = pl.reconstruct(fr, pl.ort_runner(os.path.join(REPO, "onnx", "gradnet.onnx")))
-    kept = int((pl.keep_emitters(np.zeros_like(fr["color"]), fr["color"], fr.get("variance"))
-                != 0).any(-1).sum())
+    kept = int(pl.emitters(fr["color"], fr.get("variance")).sum())
+    skipped = int(pl.beyond(fr["color"], kept=pl.emitters(fr["color"], fr.get("variance"))).sum())
     shutil.copyfile(src, os.path.join(out_dir, "emitter.exr"))
     np.save(os.path.join(out_dir, "emitter_out.npy"), np.asarray(out, np.float32))
-    print(f"emitter: {fr['color'].shape[1]} x {fr['color'].shape[0]}, {kept} pixels keep the base colour")
+    print(f"emitter: {fr['color'].shape[1]} x {fr['color'].shape[0]}, {kept} pixels keep the base colour, "
+          f"{skipped} more beyond the bias limit")
 
 
 def int8_fixtures(out_dir):

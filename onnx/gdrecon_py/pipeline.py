@@ -15,14 +15,18 @@ Steps, for one frame (arrays H x W x C, float32, linear radiance):
  5. run the network with the per-channel batch: data N x 8 x H x W (N x 1 for the no-feature
     model), grad N x 2 x H x W, N = 3 (R, G, B); output N x 1 x H x W.
  6. crop to H x W, inverse mu-law C^-1, clamp >= 0.
- 6b. (deviation from the release, `keep_emitters`) where a base pixel is beyond the network's
+ 6b. (deviation from the release, `emitters`) where a base pixel is beyond the network's
     range (a channel above EMITTER_LIMIT = 2) and known to a relative standard deviation below
     EMITTER_NOISE = 0.1 (an emitter seen directly, not a firefly), the output takes the base
     colour: the mu-law input assumes radiance in [0, 1], the network cannot output an emitter,
     and the bias correction's gain would spread the missing energy over the frame.
  7. Gaussian bias correction: kernel radius 45, sigma 15 (91 taps, normalised), separable,
     zero-padded borders; gain = (blur(R+G+B of input colour) + 1e-9) /
-    (blur(R+G+B of output) + 1e-9), multiplied into all three channels.
+    (blur(R+G+B of output) + 1e-9), multiplied into all three channels. (Deviation from the
+    release, `beyond`:) pixels with a base channel above BIAS_LIMIT = 10 that step 6b did not
+    keep (an emitter's partly covered edge, fireflies) enter neither blur: the network cannot
+    output that light, and its missing energy raised the gain over a whole room lit by bulbs
+    in view (10x the error on the `lamps` guard frame).
 The library then clamps every method's output to the base image's noise band (`noise_band`,
 src/recon/band.rs); that is not part of this reference, and the parity tests turn it off.
 """
@@ -38,6 +42,7 @@ BIAS_RADIUS = 45
 BIAS_SIGMA = 15.0
 EMITTER_LIMIT = 2.0
 EMITTER_NOISE = 0.1
+BIAS_LIMIT = 10.0
 
 
 def read_frame(path):
@@ -170,27 +175,39 @@ def blur2d(img, radius=BIAS_RADIUS, sigma=BIAS_SIGMA):
     return _conv_same_zero(_conv_same_zero(a, k, 1), k, 0)
 
 
-def bias_correct(out, color_in):
-    """out, color_in: H x W x 3 linear. gain = (blur(sum in)+1e-9)/(blur(sum out)+1e-9)."""
-    bi = blur2d(color_in.sum(-1)) + 1e-9
-    bo = blur2d(out.sum(-1)) + 1e-9
+def bias_correct(out, color_in, skip=None):
+    """out, color_in: H x W x 3 linear. gain = (blur(sum in)+1e-9)/(blur(sum out)+1e-9), the
+    pixels where `skip` (H x W bool) is set left out of both sums."""
+    si, so = color_in.sum(-1), out.sum(-1)
+    if skip is not None:
+        si, so = np.where(skip, 0.0, si), np.where(skip, 0.0, so)
+    bi = blur2d(si) + 1e-9
+    bo = blur2d(so) + 1e-9
     return (out * (bi / bo)[..., None]).astype(np.float32)
 
 
-def keep_emitters(out, color, variance=None, limit=EMITTER_LIMIT, noise=EMITTER_NOISE):
-    """Step 6b: the base colour where any channel exceeds `limit` with a relative standard
-    deviation below `noise` (no variance layer: brightness alone decides); `limit` 0 or less
-    returns `out` unchanged (the release)."""
+def emitters(color, variance=None, limit=EMITTER_LIMIT, noise=EMITTER_NOISE):
+    """H x W bool: any channel exceeds `limit` with a relative standard deviation below `noise`
+    (no variance layer: brightness alone decides); none where `limit` is 0 or less."""
     if limit <= 0:
-        return out
+        return np.zeros(color.shape[:2], bool)
     bright = color > limit
     if variance is not None:
         bright &= np.sqrt(np.maximum(variance, 0.0)) < noise * color
-    keep = bright.any(axis=-1, keepdims=True)
-    return np.where(keep, color, out).astype(np.float32)
+    return bright.any(axis=-1)
 
 
-def reconstruct(frame, run, use_features=None, correct_bias=True, range_limit=EMITTER_LIMIT):
+def beyond(color, limit=BIAS_LIMIT, kept=None):
+    """Step 7's pixels left out of the gain: a channel above `limit`, not in `kept` (H x W
+    bool); None where `limit` is 0 or less (the release)."""
+    if limit <= 0:
+        return None
+    mask = (color > limit).any(axis=-1)
+    return mask if kept is None else mask & ~kept
+
+
+def reconstruct(frame, run, use_features=None, correct_bias=True, range_limit=EMITTER_LIMIT,
+                bias_limit=BIAS_LIMIT):
     """Full reference pipeline. `run(data, grad) -> N x 1 x Hp x Wp` (numpy in/out; a torch
     model or an onnxruntime session wrapped, see `torch_runner` / `ort_runner`).
     use_features=None: follow the model (runner's `data_channels`: 8 -> features, 1 -> none),
@@ -205,9 +222,10 @@ def reconstruct(frame, run, use_features=None, correct_bias=True, range_limit=EM
     y = np.asarray(run(data, grad), np.float32)[:, 0, :H, :W]     # 3 x H x W
     out = np.maximum(C_inv(y), 0.0).transpose(1, 2, 0)
     out = np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
-    out = keep_emitters(out, fr["color"], fr.get("variance"), range_limit)
+    kept = emitters(fr["color"], fr.get("variance"), range_limit)
+    out = np.where(kept[..., None], fr["color"], out).astype(np.float32)
     if correct_bias:
-        out = bias_correct(out, fr["color"])
+        out = bias_correct(out, fr["color"], beyond(fr["color"], bias_limit, kept))
     return out
 
 

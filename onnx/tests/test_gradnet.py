@@ -343,17 +343,31 @@ def test_validation_frame_parity():
     _frame_parity(pl.read_frame(f), "gradnet.onnx")
 
 
-def test_keep_emitters_keeps_quiet_bright_pixels_only():
+def test_emitters_are_quiet_bright_pixels_only():
     """Step 6b: a bright, low-noise pixel (an emitter) keeps the base colour; a bright noisy
     one (a firefly) and a dim one keep the network's output; limit 0 is the release."""
     color = np.array([[[5.0, 5.0, 5.0], [5.0, 0.1, 0.1], [0.5, 0.5, 0.5]]], np.float32)
     variance = np.array([[[0.01] * 3, [4.0, 1e-4, 1e-4], [0.0] * 3]], np.float32)
-    out = np.full_like(color, 0.25)
-    kept = pl.keep_emitters(out, color, variance)
-    assert np.array_equal(kept[0, 0], color[0, 0])
-    assert np.array_equal(kept[0, 1], out[0, 1]) and np.array_equal(kept[0, 2], out[0, 2])
-    assert np.array_equal(pl.keep_emitters(out, color, None)[0, 1], color[0, 1])
-    assert np.array_equal(pl.keep_emitters(out, color, variance, limit=0), out)
+    assert pl.emitters(color, variance).tolist() == [[True, False, False]]
+    assert pl.emitters(color, None).tolist() == [[True, True, False]]
+    assert not pl.emitters(color, variance, limit=0).any()
+
+
+def test_bias_limit_leaves_unkept_bright_pixels_out_of_the_gain():
+    """Step 7's bias limit: a bright pixel the network could not output (the output is 1 where
+    the input is 1000) raises the gain around it unless it is left out; the emitters step 6b
+    keeps enter both sums, so they stay in; limit 0 is the release."""
+    color = np.ones((40, 40, 3), np.float32)
+    color[20, 20] = 1000.0
+    out = np.ones_like(color)
+    kept = np.zeros((40, 40), bool)
+    skip = pl.beyond(color, kept=kept)
+    assert skip.sum() == 1 and skip[20, 20]
+    assert np.allclose(pl.bias_correct(out, color, skip), 1.0)
+    assert pl.bias_correct(out, color)[19, 20, 0] > 2.0         # the release: the gain spreads it
+    kept[20, 20] = True
+    assert not pl.beyond(color, kept=kept).any()
+    assert pl.beyond(color, limit=0) is None
 
 
 # ---------------------------------------------------------------- int8 (gdrecon_py/quantize.py)

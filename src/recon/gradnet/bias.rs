@@ -63,19 +63,25 @@ pub(crate) fn blur(src: &[f32], w: usize, h: usize, taps: &[f32], out: &mut [f32
 }
 
 /// Applies the bias correction to `out` (3 channels) against the input colour `color`.
+/// Pixels marked in `skip` (row-major, one per pixel) enter neither blur: the gain then
+/// compares the two images' energy only where the network can reproduce the input.
 ///
 /// Four frame-sized planes at most (a channel sum, the two blurs, the blur's row pass): at
 /// 3840 x 2160 that is 133 MB, where computing every intermediate into its own plane took 233.
 /// Fails (with `out` unchanged) only when a plane cannot be allocated.
-pub(crate) fn correct(out: &mut Image, color: &Image) -> Result<()> {
+pub(crate) fn correct(out: &mut Image, color: &Image, skip: Option<&[bool]>) -> Result<()> {
     let (w, h) = out.size();
     let n = w * h;
     let taps = kernel();
     let channel_sum = |img: &Image, sum: &mut [f32]| {
         let s = img.as_slice();
-        sum.par_iter_mut()
-            .enumerate()
-            .for_each(|(i, v)| *v = s[i] + s[n + i] + s[2 * n + i]);
+        sum.par_iter_mut().enumerate().for_each(|(i, v)| {
+            *v = if skip.is_some_and(|m| m[i]) {
+                0.0
+            } else {
+                s[i] + s[n + i] + s[2 * n + i]
+            }
+        });
     };
     let mut sum = try_vec(n, 0.0f32)?;
     channel_sum(color, &mut sum);
@@ -149,13 +155,13 @@ mod tests {
     fn identical_input_and_output_give_unit_gain() {
         let img = Image::from_fn(3, 30, 20, |(c, x, y)| (c + y * x) as f32 * 0.01 + 0.1);
         let mut out = img.clone();
-        correct(&mut out, &img).unwrap();
+        correct(&mut out, &img, None).unwrap();
         for (a, b) in out.as_slice().iter().zip(img.as_slice()) {
             assert!((a - b).abs() <= 1e-6 * b.abs());
         }
         // Twice the input everywhere: gain 1/2 everywhere.
         let mut doubled = Image::from_fn(3, 30, 20, |(c, x, y)| 2.0 * img.at(c, x, y));
-        correct(&mut doubled, &img).unwrap();
+        correct(&mut doubled, &img, None).unwrap();
         for (a, b) in doubled.as_slice().iter().zip(img.as_slice()) {
             assert!((a - b).abs() <= 1e-5 * b.abs());
         }

@@ -106,6 +106,13 @@ pub struct GradNetConfig {
     /// step 6b, `docs/benchmarks.md`): chosen on the validation split (2 over 1), where it cut
     /// the error on `studio` 6-18x and on `dusk` 4-8x.
     pub range_limit: f32,
+    /// Base-colour level beyond which a pixel enters neither side of the bias correction's
+    /// gain, unless `range_limit` keeps it (a quiet emitter, the base colour on both sides):
+    /// the noisy rest that far beyond the network's range (an emitter's partly covered edge,
+    /// fireflies) is light the network cannot output, and its missing energy otherwise
+    /// raises the gain over the whole neighbourhood (a room lit by bulbs in view); 0: every
+    /// pixel enters the gain, as the release.
+    pub bias_limit: f32,
     /// Half-width of the noise band the output is clamped to, in standard deviations of the
     /// base image's noise (`recon/band.rs`); 0: off.
     pub noise_band: f32,
@@ -130,6 +137,7 @@ impl Default for GradNetConfig {
             tile_size: DEFAULT_TILE,
             bias_correction: true,
             range_limit: 2.0,
+            bias_limit: BIAS_LIMIT,
             noise_band: NOISE_BAND,
             band_trim: BAND_TRIM,
             band_emitters: false,
@@ -137,6 +145,13 @@ impl Default for GradNetConfig {
         }
     }
 }
+
+/// Default [`GradNetConfig::bias_limit`]: chosen on the validation split, geometric mean of
+/// the fp32 graph at 4 / 16 spp: 10 5.172e-3 / 1.826e-3, 20 5.195e-3 / 1.831e-3, 50 and 0 (the
+/// release) 5.22e-3 / 1.84e-3, 5 5.283e-3 / 1.824e-3; 2 (`range_limit`'s level) cost studio 2x
+/// at 4 spp, whose bright walls reach it in noise. On test it cut `lamps` 1.3-2.5x and moved
+/// no other family by 1 % (docs/gradnet.md, "Bias limit").
+pub const BIAS_LIMIT: f32 = 10.0;
 
 /// Default [`GradNetConfig::whole_pixels`]: 2^20, so 1280 x 720 runs whole (the fastest and
 /// most exact run: no overlap) and 1920 x 1080 in tiles.
@@ -184,6 +199,17 @@ impl Params for GradNetConfig {
             |c| c.range_limit,
             |c, v| c.range_limit = v,
         ),
+        Param::float(
+            "bias_limit",
+            Range::closed(0.0, 1e9),
+            "Pixels whose base colour exceeds this in a channel, unless range_limit keeps \
+             them, enter neither side of the bias correction's gain: light that far beyond the \
+             network's range (an emitter's partly covered edge, fireflies) it cannot output, \
+             and its missing energy would brighten the whole neighbourhood (a room lit by bulbs \
+             in view); 0: every pixel enters the gain, as the release",
+            |c| c.bias_limit,
+            |c, v| c.bias_limit = v,
+        ),
         band::param(|c| c.noise_band, |c, v| c.noise_band = v),
         band::trim_param(|c| c.band_trim, |c, v| c.band_trim = v),
         band::emitters_param(|c| c.band_emitters, |c, v| c.band_emitters = v),
@@ -220,6 +246,7 @@ impl Register for GradNetConfig {
         "precision=int8",
         "bias_correction=false",
         "range_limit=0",
+        "bias_limit=0",
     ];
     const BUILT: bool = cfg!(feature = "gradnet");
 
@@ -480,26 +507,42 @@ mod enabled {
         clamped
     }
 
-    /// Where any channel of the base colour exceeds `limit` and is known to a relative
-    /// standard deviation below [`EMITTER_NOISE`] (an emitter, not a firefly), copies the base
-    /// colour into `out`; returns how many pixels.
-    fn keep_base_beyond(frame: &Frame, out: &mut Image, limit: f32) -> u64 {
-        let (w, h) = frame.size();
-        let n = w * h;
+    /// Per pixel: whether any channel of the base colour exceeds `limit` and is known to a
+    /// relative standard deviation below [`EMITTER_NOISE`] (an emitter seen directly, whose
+    /// radiance every sample returns, not a firefly).
+    fn emitters(frame: &Frame, limit: f32) -> Vec<bool> {
+        let n = frame.width() * frame.height();
         let base = frame.color().as_slice();
         let var = frame.variance().map(|v| v.as_slice());
         let quiet = |i: usize| var.is_none_or(|v| v[i].max(0.0).sqrt() < EMITTER_NOISE * base[i]);
+        (0..n)
+            .map(|p| (0..3).any(|c| base[c * n + p] > limit && quiet(c * n + p)))
+            .collect()
+    }
+
+    /// Copies the base colour into `out` where `mask` is set; returns how many pixels.
+    fn keep_base(frame: &Frame, out: &mut Image, mask: &[bool]) -> u64 {
+        let n = mask.len();
+        let base = frame.color().as_slice();
         let o = out.as_mut_slice();
         let mut kept = 0;
-        for p in 0..n {
-            if (0..3).any(|c| base[c * n + p] > limit && quiet(c * n + p)) {
-                for c in 0..3 {
-                    o[c * n + p] = base[c * n + p];
-                }
-                kept += 1;
+        for p in (0..n).filter(|&p| mask[p]) {
+            for c in 0..3 {
+                o[c * n + p] = base[c * n + p];
             }
+            kept += 1;
         }
         kept
+    }
+
+    /// Per pixel: whether any channel of the base colour exceeds `limit`, leaving out the
+    /// pixels in `kept`.
+    fn beyond(frame: &Frame, limit: f32, kept: Option<&[bool]>) -> Vec<bool> {
+        let n = frame.width() * frame.height();
+        let base = frame.color().as_slice();
+        (0..n)
+            .map(|p| !kept.is_some_and(|k| k[p]) && (0..3).any(|c| base[c * n + p] > limit))
+            .collect()
     }
 
     /// Relative standard deviation of the base colour under which a bright pixel is taken
@@ -670,18 +713,23 @@ mod enabled {
                 name: "network".into(),
                 time: network,
             });
-            if self.config.range_limit > 0.0 {
-                let kept = keep_base_beyond(frame, out, self.config.range_limit);
-                if kept > 0 {
+            let limit = self.config.range_limit;
+            let kept = (limit > 0.0).then(|| emitters(frame, limit));
+            if let Some(mask) = &kept {
+                let count = keep_base(frame, out, mask);
+                if count > 0 {
                     report.note(format!(
-                        "{kept} pixels beyond range_limit {} keep their base colour",
-                        self.config.range_limit
+                        "{count} pixels beyond range_limit {limit} keep their base colour"
                     ));
                 }
             }
             progress.check()?;
             if self.config.bias_correction {
-                report.time("bias correction", || bias::correct(out, frame.color()))?;
+                let bias_limit = self.config.bias_limit;
+                let skip = (bias_limit > 0.0).then(|| beyond(frame, bias_limit, kept.as_deref()));
+                report.time("bias correction", || {
+                    bias::correct(out, frame.color(), skip.as_deref())
+                })?;
             } else {
                 report.skip("bias correction (disabled)");
             }

@@ -87,7 +87,7 @@ fn bias_correction_matches_numpy() {
     let mut out = hwc(npy("bias_out.npy"));
     let color = hwc(npy("bias_color.npy"));
     let want = hwc(npy("bias_corrected.npy"));
-    bias::correct(&mut out, &color).unwrap();
+    bias::correct(&mut out, &color, None).unwrap();
     for (g, w) in out.as_slice().iter().zip(want.as_slice()) {
         assert!((g - w).abs() <= 1e-5 * w.abs().max(1e-3), "{g} vs {w}");
     }
