@@ -4,7 +4,7 @@
 //!
 //! Needs ONNX Runtime 1.31 (found by the library's discovery: `bash onnx/setup.sh` installs
 //! it). Tolerances: the pipeline matches Python to 1e-4 relative (|a - b| <= 1e-4 (|b| + 1e-3)),
-//! in fp32 (the default precision) against the torch model, in int8 against onnxruntime in
+//! in fp32 against the torch model, in int8 (the default precision) against onnxruntime in
 //! Python running `onnx/gradnet_int8.onnx` (the same kernels, so the same bound holds);
 //! tiled matches untiled to the same bound.
 #![cfg(all(feature = "gradnet", feature = "embed-model"))]
@@ -206,7 +206,7 @@ fn plans_reuse_the_context_session_and_report_what_ran() {
     assert!(report
         .notes
         .iter()
-        .any(|n| n.contains("embedded gradnet.onnx")));
+        .any(|n| n.contains("embedded gradnet_int8.onnx")));
     let mut b = Plan::new(&ctx, &config, frame.width(), frame.height()).unwrap();
     let (second, _) = b.execute(&frame, &Progress::none()).unwrap();
     assert_eq!(
