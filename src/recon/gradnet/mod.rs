@@ -38,7 +38,7 @@ pub use model::ModelVariant;
 /// GradNet's feature model runs int8 by default since the forty-first session: its int8 graph
 /// (`onnx/gradnet_int8.onnx`, the ReLU graph quantisation-aware fine-tuned against references,
 /// `docs/gradnet.md`, "A ReLU graph for int8") is about 2.6x faster than fp32 on a CPU with
-/// AVX-512 VNNI (1.36x OIDN's time at 720p); its relMSE is 0.8 % below fp32's on validation
+/// AVX-512 VNNI (1.36-1.46x OIDN's time at 720p); its relMSE is 0.8 % below fp32's on validation
 /// and 0.2 % below on test (geometric means over 24 frames each, #19's bar being 2 %), +3 / +4 %
 /// at 64 spp, up to 1.16x on one frame (`dusk` 64 spp). What kept it from being the default,
 /// the HDR guard frame, was the bias correction's gain, not int8 (`bias_limit`). `fp32` runs
@@ -150,7 +150,7 @@ impl Default for GradNetConfig {
 /// the fp32 graph at 4 / 16 spp: 10 5.172e-3 / 1.826e-3, 20 5.195e-3 / 1.831e-3, 50 and 0 (the
 /// release) 5.22e-3 / 1.84e-3, 5 5.283e-3 / 1.824e-3; 2 (`range_limit`'s level) cost studio 2x
 /// at 4 spp, whose bright walls reach it in noise. On test it cut `lamps` 1.3-2.5x and moved
-/// no other family by 1 % (docs/gradnet.md, "Bias limit").
+/// no other family by 1 % (docs/gradnet.md, "The bias limit, and int8 as the default").
 pub const BIAS_LIMIT: f32 = 10.0;
 
 /// Default [`GradNetConfig::whole_pixels`]: 2^20, so 1280 x 720 runs whole (the fastest and
