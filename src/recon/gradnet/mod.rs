@@ -727,6 +727,7 @@ mod enabled {
             if self.config.bias_correction {
                 let bias_limit = self.config.bias_limit;
                 let skip = (bias_limit > 0.0).then(|| beyond(frame, bias_limit, kept.as_deref()));
+                drop(kept); // a frame-sized mask less at the correction's peak
                 report.time("bias correction", || {
                     bias::correct(out, frame.color(), skip.as_deref())
                 })?;
