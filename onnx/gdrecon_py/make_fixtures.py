@@ -110,8 +110,8 @@ def emitter_fixture(out_dir):
     src = os.path.join(REPO, "tests", "data", "guard", "lamps_16spp.exr")
     fr = pl.read_frame(src)
     out = pl.reconstruct(fr, pl.ort_runner(os.path.join(REPO, "onnx", "gradnet.onnx")))
-    kept = int(pl.emitters(fr["color"], fr.get("variance")).sum())
-    skipped = int(pl.beyond(fr["color"], kept=pl.emitters(fr["color"], fr.get("variance"))).sum())
+    emitters = pl.emitters(fr["color"], fr.get("variance"))
+    kept, skipped = int(emitters.sum()), int(pl.beyond(fr["color"], kept=emitters).sum())
     shutil.copyfile(src, os.path.join(out_dir, "emitter.exr"))
     np.save(os.path.join(out_dir, "emitter_out.npy"), np.asarray(out, np.float32))
     print(f"emitter: {fr['color'].shape[1]} x {fr['color'].shape[0]}, {kept} pixels keep the base colour, "
