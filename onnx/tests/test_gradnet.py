@@ -344,8 +344,9 @@ def test_validation_frame_parity():
 
 
 def test_emitters_are_quiet_bright_pixels_only():
-    """Step 6b: a bright, low-noise pixel (an emitter) keeps the base colour; a bright noisy
-    one (a firefly) and a dim one keep the network's output; limit 0 is the release."""
+    """Step 6b's mask: a bright, low-noise pixel (an emitter) is in it; a bright noisy one (a
+    firefly) and a dim one are not; without a variance layer brightness alone decides; limit 0
+    is the release (no pixel)."""
     color = np.array([[[5.0, 5.0, 5.0], [5.0, 0.1, 0.1], [0.5, 0.5, 0.5]]], np.float32)
     variance = np.array([[[0.01] * 3, [4.0, 1e-4, 1e-4], [0.0] * 3]], np.float32)
     assert pl.emitters(color, variance).tolist() == [[True, False, False]]
