@@ -17,24 +17,27 @@
 //! `i = k mod n`, with the exact line-search step `clamp(-d^T Q w / d^T Q d, 0, 1)`,
 //! `d = e_i - w`; stop after `n` consecutive steps changing `w` by less than 1e-8, or after
 //! `3n + 1` iterations. We exploit the low rank of `Q`: the projections `s = B w` (at most 15
-//! values), `sum v w^2` and a global scale of `w` are updated in O(15) per iteration instead
-//! of the O(15 n) of a direct evaluation. Terms whose weight is zero (no features, coarsest
+//! values), `|s|^2`, `sum v w^2` and a global scale of `w` are updated in O(15) per iteration
+//! instead of the O(15 n) of a direct evaluation, and the once-per-sweep renormalisation
+//! scales them instead of recomputing them (O(15) instead of O(15 n) again). Terms whose weight is zero (no features, coarsest
 //! level) are not built at all; terms whose weight vanishes at very high spp have no rows
 //! ([`vanishing_terms`]) but still count in the start.
 //!
-//! Why it is fast (its measured speed-ups are in `docs/benchmarks.md`): the arithmetic
-//! per pixel is the release's, operation for operation and sum for sum, so the output is
-//! bit-identical to that version, kept as the test reference (`qp/reference.rs`); but
-//! [`LANES`] consecutive pixels of a row are solved in lockstep, one per SIMD lane
+//! Why it is fast (its measured speed-ups are in `docs/benchmarks.md`): the arithmetic per
+//! pixel is the release's up to the order of some sums (the updates above; `b . s` summed in
+//! three chains; the initial costs from the unscaled differences), so the output is within 1e-5
+//! of that version's, kept as the test reference (`qp/reference.rs`; measured: 9.5e-7 at most
+//! on a 720p frame of peak 0.93, relMSE the same to 6 digits on every validation and test
+//! frame); but [`LANES`] consecutive pixels of a row are solved in lockstep, one per SIMD lane
 //! (`qp/lanes.rs`: plain arrays that LLVM vectorises, no `unsafe`). The lanes share the
 //! iteration counter, hence the vertex and the sweeps; a lane that has stopped, or takes a tiny
 //! step, is masked. All per-window arrays are lane-innermost and `K` is a const generic; the
-//! update of `s` is fused with the next iteration's two sums over it; the initial weights,
+//! update of `s` is fused with the next iteration's sum over it; the initial weights,
 //! column norms and projections are gathered while the rows are built; windows are read from
 //! planes padded with the reflect-101 border band by band ([`BAND`] rows plus the halo, so the
 //! copies stay small), with no `reflect` in the inner loops; the scratch is per band, not per
-//! pixel. Bands run in parallel and no result depends on the thread count. A band's whole
-//! solve is compiled for AVX2 as well and picked at run time (`multiversion`).
+//! pixel. Bands run in parallel and no result depends on the thread count or the CPU. A band's
+//! whole solve is compiled for AVX-512 and AVX2 as well and picked at run time (`multiversion`).
 //!
 //! The module's parts: `level.rs` (a level's inputs, term weights, vanishing terms),
 //! `band.rs` (padded bands of rows and the bias terms read from them), `simplex.rs` (the
@@ -46,7 +49,7 @@ use super::util::reflect;
 use crate::error::Result;
 use crate::image::{try_vec, Image};
 use crate::progress::Progress;
-use band::{Padded, Planes, Term, Unscale, BAND};
+use band::{Padded, Planes, Term, BAND};
 pub(crate) use lanes::LANES;
 use lanes::{F32x, Mask};
 pub(crate) use level::*;
@@ -141,10 +144,14 @@ fn filter_rows<const K: usize>(
 
 /// Filters image rows `band * BAND ..` (at most [`BAND`] of them); returns per row colour then
 /// variance, channel by channel, and the pixels skipped. Compiled for AVX2 too, picked at run
-/// time: the whole solver is inlined into it, so its `F32x` arithmetic becomes 256-bit
-/// instructions (measured 1.5x; AVX-512 was slower: the lanes are 8 wide). No FMA contraction
-/// happens in Rust, so every version computes the same bits.
-#[multiversion::multiversion(targets("x86_64+avx2+fma"))]
+/// time: the whole solver is inlined into it, so its `F32x` arithmetic becomes 512-bit
+/// instructions (one register per value) or 256-bit ones (two). AVX-512 pays since the solver's
+/// chains are a third as long (`simplex::dot3`) and its 32 registers hold `s`. No FMA
+/// contraction happens in Rust, so every version computes the same bits.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma"
+))]
 fn filter_band<const K: usize>(
     level: &QpLevel,
     al: &[f32; 5],
@@ -301,13 +308,9 @@ impl<const K: usize> Ctx<'_, K> {
                     for c in 0..3 {
                         let r = 3 * ti + c;
                         let d = F32x::load(&srcs[r][dx..dx + LANES]) - centres[r];
-                        let br = term.sq * (d + addends[term.residual.addend(c)]);
-                        let raw = match term.unscale {
-                            Unscale::Mul(m) => br * m,
-                            Unscale::Div(s) => br / s,
-                            Unscale::Zero => F32x::splat(0.0),
-                        };
-                        e = e + raw * raw;
+                        let raw = d + addends[term.residual.addend(c)];
+                        let br = term.sq * raw;
+                        e = e + raw * raw * term.counts;
                         if term.row {
                             bq[row] = br;
                             col2 = col2 + br * br;
@@ -321,8 +324,9 @@ impl<const K: usize> Ctx<'_, K> {
             }
         }
         // Normalised, and projected on the way (the sums of `Simplex::project`, same order).
+        let inverse = F32x::splat(1.0) / total;
         for q in 0..n {
-            let wq = sc.w[q] / total;
+            let wq = sc.w[q] * inverse;
             sc.w[q] = wq;
             for (sr, &br) in st.s.iter_mut().zip(&sc.b[q]) {
                 *sr = *sr + br * wq;

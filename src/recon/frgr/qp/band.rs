@@ -112,7 +112,7 @@ impl Planes {
                 centre: centre.as_slice(),
                 residual,
                 sq: F32x::splat(sq),
-                unscale: Unscale::new(sq),
+                counts: F32x::splat(if sq > 0.0 { 1.0 } else { 0.0 }),
                 row: al[a] != 0.0,
             }
         };
@@ -136,7 +136,7 @@ impl Planes {
         while 3 * terms.iter().filter(|t| t.row).count() < k {
             terms.push(Term {
                 sq: F32x::splat(0.0),
-                unscale: Unscale::Zero,
+                counts: F32x::splat(0.0),
                 ..term(&self.img, level.img, Residual::None, 0)
             });
         }
@@ -174,29 +174,8 @@ pub(super) struct Term<'a> {
     pub(super) residual: Residual,
     /// `sqrt(alpha)`.
     pub(super) sq: F32x,
-    pub(super) unscale: Unscale,
+    /// 1 where the term counts in the initial weights' costs, 0 for a term of weight 0.
+    pub(super) counts: F32x,
     /// Whether the term has rows in the objective (false: dropped, see [`vanishing_terms`]).
     pub(super) row: bool,
-}
-
-/// How the initial weights undo a row's `sqrt(alpha)` (the release divides).
-#[derive(Clone, Copy)]
-pub(super) enum Unscale {
-    /// A power of two: multiplying by its (exact) inverse rounds exactly as dividing does.
-    Mul(F32x),
-    Div(F32x),
-    /// A term of weight 0 (never built, kept for the release's `if s > 0` guard).
-    Zero,
-}
-
-impl Unscale {
-    pub(super) fn new(sq: f32) -> Unscale {
-        let inverse = 1.0 / sq;
-        let power_of_two = sq.is_normal() && inverse.is_normal() && sq.to_bits() & 0x007f_ffff == 0;
-        match (sq > 0.0, power_of_two) {
-            (false, _) => Unscale::Zero,
-            (true, true) => Unscale::Mul(F32x::splat(inverse)),
-            (true, false) => Unscale::Div(F32x::splat(sq)),
-        }
-    }
 }

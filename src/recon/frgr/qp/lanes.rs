@@ -7,8 +7,8 @@ use std::ops::{Add, BitAnd, Div, Mul, Neg, Sub};
 
 /// Lanes per vector (the arithmetic below is spelt out for 16). Sixteen, not the eight of one
 /// AVX2 register: the solver's iteration is a chain of dependent sums, so two registers per
-/// value keep two independent chains in flight (faster than eight). With AVX-512 (one register
-/// per value) it was slower, so the solver is not compiled for it.
+/// value keep two independent chains in flight (faster than eight). With AVX-512 one register
+/// holds a value; the solver splits its sums into three chains instead (`simplex::dot3`).
 pub(crate) const LANES: usize = 16;
 
 /// [`LANES`] `f32` lanes.

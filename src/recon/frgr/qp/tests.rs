@@ -1,6 +1,6 @@
 //! Tests of the lane-parallel filter: the solver against a dense evaluation, the exact
-//! optimum (KKT) and, bit for bit, the scalar solver; the whole filter against the
-//! one-pixel-at-a-time reference.
+//! optimum (KKT) and the scalar release solver (within 1e-5; lanes independent bit for bit);
+//! the whole filter against the one-pixel-at-a-time reference.
 
 use super::*;
 
@@ -108,7 +108,7 @@ fn incremental_solver_equals_a_dense_evaluation() {
 }
 
 #[test]
-fn lanes_follow_the_scalar_solver_bit_for_bit() {
+fn lanes_follow_the_scalar_release_solver() {
     let mut rng = Lcg(11);
     let n = 49;
     let mut problems: Vec<Problem> = (0..LANES).map(|_| random_problem(&mut rng, 9, n)).collect();
@@ -126,6 +126,7 @@ fn lanes_follow_the_scalar_solver_bit_for_bit() {
     let (b, v, mut w) = pack::<9>(&problems, n);
     let active: [bool; LANES] = std::array::from_fn(|l| l != 6);
     let iters = Simplex::<9> { b: &b, v: &v, n }.solve(&mut w, Mask::from_bools(active), 3 * n + 1);
+    let mut worst = 0.0f32;
     for (l, (pb, pv, w0)) in problems.iter().enumerate() {
         let mut scalar = w0.clone();
         let it = if active[l] {
@@ -135,9 +136,24 @@ fn lanes_follow_the_scalar_solver_bit_for_bit() {
         };
         assert_eq!(iters[l] as usize, it, "lane {l}");
         for q in 0..n {
-            assert_eq!(w[q].0[l].to_bits(), scalar[q].to_bits(), "lane {l} q {q}");
+            worst = worst.max((w[q].0[l] - scalar[q]).abs());
+        }
+        // A lane's result is its own: alone in a group, it is the same bits.
+        let (b1, v1, mut alone) = pack::<9>(&[problems[l].clone()], n);
+        let mask: [bool; LANES] = std::array::from_fn(|m| m == 0 && active[l]);
+        Simplex::<9> { b: &b1, v: &v1, n }.solve(&mut alone, Mask::from_bools(mask), 3 * n + 1);
+        for q in 0..n {
+            assert_eq!(
+                w[q].0[l].to_bits(),
+                alone[q].0[0].to_bits(),
+                "lane {l} q {q}"
+            );
         }
     }
+    // The release's arithmetic, up to the order of its sums (the projections are updated
+    // rather than recomputed once per sweep, and summed in three chains): weights (which sum
+    // to 1) within 1e-5. Measured: 3.0e-8.
+    assert!(worst <= 1e-5, "max |w_lanes - w_release| = {worst:e}");
     assert!(
         iters[1] as usize == n && iters[0] as usize == 3 * n + 1,
         "{iters:?}"
@@ -333,8 +349,8 @@ fn filter_equals_the_per_pixel_reference() {
                 .iter()
                 .zip(fast.as_slice())
                 .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
-            // Tolerance: 1e-5 of the peak. Measured: 0, bit for bit (the fast path repeats the
-            // reference's arithmetic exactly).
+            // Tolerance: 1e-5 of the peak. Measured: at most 8.3e-7 (the fast path sums the
+            // solver's projections in another order, see `lanes_follow_the_scalar_release_solver`).
             assert!(
                 diff <= 1e-5 * peak,
                 "case {i}: max |fast - reference| = {diff:e}"
@@ -380,11 +396,16 @@ fn terms_whose_weight_vanishes_are_dropped_at_very_high_spp_only() {
         ..level(1e14)
     };
     assert!(reduced.alphas().iter().filter(|&&a| a > 0.0).count() < 5);
-    // The fast path still repeats the reference (which builds every row, starts from all of
-    // them, then removes the dropped ones) bit for bit.
+    // The fast path still follows the reference (which builds every row, starts from all of
+    // them, then removes the dropped ones), within the tolerance of
+    // `filter_equals_the_per_pixel_reference`.
     let (ro, rv, _, _) = reference::gradient_guided_filter(&reduced);
     let (fo, fv, _) = gradient_guided_filter(&reduced);
-    assert_eq!((ro.max_abs_diff(&fo), rv.max_abs_diff(&fv)), (0.0, 0.0));
+    for (x, y) in [(&ro, &fo), (&rv, &fv)] {
+        let peak = x.as_slice().iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let diff = x.max_abs_diff(y);
+        assert!(diff <= 1e-5 * peak, "{diff:e} vs peak {peak:e}");
+    }
     // And dropping them hardly moves the result: three terms of under 1e-4 of the objective
     // each, through a truncated solve. Tolerance 1e-3 of the peak; measured 3.5e-4 (and 4.6e-3
     // when the dropped terms were also left out of the start).
