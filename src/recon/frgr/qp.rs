@@ -19,9 +19,9 @@
 //! `3n + 1` iterations. We exploit the low rank of `Q`: the projections `s = B w` (at most 15
 //! values), `|s|^2`, `sum v w^2` and a global scale of `w` are updated in O(15) per iteration
 //! instead of the O(15 n) of a direct evaluation, and the once-per-sweep renormalisation
-//! scales them instead of recomputing them (O(15) instead of O(15 n) again). Terms whose weight is zero (no features, coarsest
-//! level) are not built at all; terms whose weight vanishes at very high spp have no rows
-//! ([`vanishing_terms`]) but still count in the start.
+//! scales them instead of recomputing them (O(15) instead of O(15 n) again). Terms whose
+//! weight is zero (no features, coarsest level) are not built at all; terms whose weight
+//! vanishes at very high spp have no rows ([`vanishing_terms`]) but still count in the start.
 //!
 //! Why it is fast (its measured speed-ups are in `docs/benchmarks.md`): the arithmetic per
 //! pixel is the release's up to the order of some sums (the updates above; `b . s` summed in
@@ -143,8 +143,8 @@ fn filter_rows<const K: usize>(
 }
 
 /// Filters image rows `band * BAND ..` (at most [`BAND`] of them); returns per row colour then
-/// variance, channel by channel, and the pixels skipped. Compiled for AVX2 too, picked at run
-/// time: the whole solver is inlined into it, so its `F32x` arithmetic becomes 512-bit
+/// variance, channel by channel, and the pixels skipped. Compiled for AVX-512 and AVX2 too,
+/// picked at run time: the whole solver is inlined into it, so its `F32x` arithmetic becomes 512-bit
 /// instructions (one register per value) or 256-bit ones (two). AVX-512 pays since the solver's
 /// chains are a third as long (`simplex::dot3`) and its 32 registers hold `s`. No FMA
 /// contraction happens in Rust, so every version computes the same bits.
@@ -310,7 +310,9 @@ impl<const K: usize> Ctx<'_, K> {
                         let d = F32x::load(&srcs[r][dx..dx + LANES]) - centres[r];
                         let raw = d + addends[term.residual.addend(c)];
                         let br = term.sq * raw;
-                        e = e + raw * raw * term.counts;
+                        if term.counts {
+                            e = e + raw * raw;
+                        }
                         if term.row {
                             bq[row] = br;
                             col2 = col2 + br * br;

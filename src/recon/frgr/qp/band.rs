@@ -112,7 +112,7 @@ impl Planes {
                 centre: centre.as_slice(),
                 residual,
                 sq: F32x::splat(sq),
-                counts: F32x::splat(if sq > 0.0 { 1.0 } else { 0.0 }),
+                counts: sq > 0.0,
                 row: al[a] != 0.0,
             }
         };
@@ -136,7 +136,7 @@ impl Planes {
         while 3 * terms.iter().filter(|t| t.row).count() < k {
             terms.push(Term {
                 sq: F32x::splat(0.0),
-                counts: F32x::splat(0.0),
+                counts: false,
                 ..term(&self.img, level.img, Residual::None, 0)
             });
         }
@@ -174,8 +174,8 @@ pub(super) struct Term<'a> {
     pub(super) residual: Residual,
     /// `sqrt(alpha)`.
     pub(super) sq: F32x,
-    /// 1 where the term counts in the initial weights' costs, 0 for a term of weight 0.
-    pub(super) counts: F32x,
+    /// Whether the term counts in the initial weights' costs (not one of weight 0).
+    pub(super) counts: bool,
     /// Whether the term has rows in the objective (false: dropped, see [`vanishing_terms`]).
     pub(super) row: bool,
 }

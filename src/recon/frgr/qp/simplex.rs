@@ -5,8 +5,7 @@ use super::lanes::{F32x, I32x, Mask, LANES};
 use super::level::MAX_N;
 
 /// The solver's O(K n) start: projections `s = B w`, `w^T diag(v) w` and the squared column
-/// norms of `B`. Sums start from -0.0 like `Iterator::sum`, so that even signed zeros match the
-/// scalar solver.
+/// norms of `B`. Sums start from -0.0 like `Iterator::sum`, in the scalar solver's order.
 pub(crate) struct Start<const K: usize> {
     pub(super) s: [F32x; K],
     pub(super) svw: F32x,
@@ -187,12 +186,13 @@ impl<const K: usize> Simplex<'_, K> {
         for &wq in &w[..n] {
             total = total + wq;
         }
-        let factor = *scale / (total * *scale);
+        // The true weights `scale w` sum to `sum`: divided by it, and so are the projections.
+        let sum = total * *scale;
+        let factor = *scale / sum;
         for wq in &mut w[..n] {
             *wq = F32x::select(live, *wq * factor, *wq);
         }
-        // The true weights `scale w` are divided by their sum `g^-1`: so are the projections.
-        let g = F32x::splat(1.0) / (total * *scale);
+        let g = F32x::splat(1.0) / sum;
         for sr in s.iter_mut() {
             *sr = F32x::select(live, *sr * g, *sr);
         }
