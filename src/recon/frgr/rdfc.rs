@@ -23,9 +23,11 @@
 //! over the offsets and, per offset, over its rows, so that its inputs (with the window's
 //! margin) and accumulators stay in the core's cache instead of one full-image pass per step
 //! and offset. Inputs are padded by the window radius (reflect-101) so that a neighbour row is
-//! a slice; the colour distance is computed once per offset for the tile and a `patch` margin,
-//! then patch-summed by direct shifted-slice sums (`reflect` only in the image's border
-//! columns; up to 8 rows per pass), so a candidate costs about the same for any patch size;
+//! a slice; the colour distance is computed once per offset for the tile and a `patch` margin
+//! (reflected beyond the image's borders, so that no column needs `reflect`), then patch-summed
+//! by shifted-slice sums (up to 8 rows per pass; with the release's radii 1 and 3, the radius-3
+//! rows reuse the radius-1 ones: three terms instead of seven), so a candidate costs about the
+//! same for any patch size;
 //! offsets are weighed in pairs (one pass over the accumulators for two offsets, the same sums
 //! in the same order); the exponential is a branch-free polynomial (`fastmath`), which
 //! vectorises where libm's `expf` does not. The row kernels are also compiled for AVX-512 and
@@ -254,27 +256,24 @@ fn weigh_rows<const P: usize>(
     }
 }
 
-/// `out[x - x0] = sum_{|t| <= r} d[reflect(x + t) - xs]` for `x` in `x0 .. x0 + out.len()`: a
-/// row of the horizontal box sum, `d` holding the image row's columns `xs ..`. Terms are added
-/// in order of `t`; the columns whose window stays inside the image are shifted-slice sums.
-fn box_row(d: &[f32], xs: usize, x0: usize, w: usize, r: usize, out: &mut [f32]) {
-    let x1 = x0 + out.len();
-    let lo = r.clamp(x0, x1);
-    let hi = w.saturating_sub(r).clamp(lo, x1);
-    for x in (x0..lo).chain(hi..x1) {
-        let mut acc = 0.0;
-        for t in -(r as isize)..=r as isize {
-            acc += d[reflect(x as isize + t, w) - xs];
-        }
-        out[x - x0] = acc;
-    }
-    if lo < hi {
-        let first = lo - r - xs;
-        add_rows(
-            &mut out[lo - x0..hi - x0],
-            (0..=2 * r).map(|t| &d[first + t..]),
-        );
-    }
+/// The horizontal patch sums of one row of colour distances `d`, reflected (reflect-101) to
+/// `r_max` columns either side of the tile's `out.len()` (the largest radius): `out[x] =
+/// sum_{|t| <= r} d[r_max + x + t]`, terms in order of `t`.
+fn box_row(d: &[f32], r_max: usize, r: usize, out: &mut [f32]) {
+    add_rows(out, (0..=2 * r).map(|t| &d[r_max - r + t..]));
+}
+
+/// [`box_row`] of radius 1 (`out1`, the same sums) and 3 (`out3`) at once, with `r_max = 3`:
+/// the radius-3 sum reuses the radius-1 one, `h_3(x) = h_1(x - 2) + d(x) + h_1(x + 2)`, three
+/// terms instead of seven (added in that order: a different rounding from `box_row`'s, within
+/// the tests' tolerance). `ext` is scratch of at least `d.len()`.
+fn box_rows_1_3(d: &[f32], ext: &mut [f32], out1: &mut [f32], out3: &mut [f32]) {
+    let tw = out1.len();
+    // ext[j] = h_1 at d's column j + 1.
+    let ext = &mut ext[..tw + 4];
+    add_rows(ext, (0..3).map(|t| &d[t..]));
+    out1.copy_from_slice(&ext[2..2 + tw]);
+    add_row_batch(out3, &[&ext[..tw], &d[3..], &ext[4..]], true);
 }
 
 /// `out = sum of the rows` (at least one, each at least `out.len()` long), added in order:
@@ -417,7 +416,12 @@ impl Nlm<'_> {
             (y1 + p).min(h),
         );
         let dw = xe - xs;
-        let mut delta = try_vec(dw * (ye - ys), 0.0f32)?;
+        // Distance rows span the tile's columns and `p` more either side (beyond the image's
+        // borders reflected), so that every patch sum is a sum of shifted slices; column `xs`
+        // sits at `off`.
+        let (dwp, off) = (tw + 2 * p, p - (x0 - xs));
+        let mut delta = try_vec(dwp * (ye - ys), 0.0f32)?;
+        let mut ext = vec![0.0f32; dwp];
         // Per slot (the offsets of a group): horizontal patch sums per radius, the rows'
         // vertical patch sums and feature distances.
         let per_radius = |len| -> Result<Vec<Vec<f32>>> {
@@ -444,19 +448,30 @@ impl Nlm<'_> {
             if !self.radii.is_empty() {
                 for (hsum, &(ox, oy)) in hsum.iter_mut().zip(group) {
                     // Colour distance rows (the mean over channels' 1/3 is applied later).
-                    for (row, py) in delta.chunks_exact_mut(dw).zip(ys..ye) {
+                    for (row, py) in delta.chunks_exact_mut(dwp).zip(ys..ye) {
                         let qy = reflect(py as isize + oy, h);
                         colour_distance_row(
-                            row,
+                            &mut row[off..off + dw],
                             self.colour.rows3(py, xs, 0, dw),
                             self.colour.rows3(qy, xs, ox, dw),
                             self.var.rows3(py, xs, 0, dw),
                             self.var.rows3(qy, xs, ox, dw),
                         );
+                        for j in (0..off).chain(off + dw..dwp) {
+                            let c = (j + x0) as isize - p as isize;
+                            row[j] = row[reflect(c, w) + p - x0];
+                        }
+                    }
+                    if let ([h1, h3], [1, 3]) = (&mut hsum[..], &self.radii[..]) {
+                        let rows = h1.chunks_exact_mut(tw).zip(h3.chunks_exact_mut(tw));
+                        for (d, (o1, o3)) in delta.chunks_exact(dwp).zip(rows) {
+                            box_rows_1_3(d, &mut ext, o1, o3);
+                        }
+                        continue;
                     }
                     for (hs, &pr) in hsum.iter_mut().zip(&self.radii) {
-                        for (d, out) in delta.chunks_exact(dw).zip(hs.chunks_exact_mut(tw)) {
-                            box_row(d, xs, x0, w, pr, out);
+                        for (d, out) in delta.chunks_exact(dwp).zip(hs.chunks_exact_mut(tw)) {
+                            box_row(d, p, pr, out);
                         }
                     }
                 }

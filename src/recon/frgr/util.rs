@@ -45,6 +45,7 @@ impl PaddedRows {
     }
 
     /// [`PaddedRows::row`] of channels 0, 1 and 2.
+    #[inline]
     pub(crate) fn rows3(&self, y: usize, x0: usize, dx: isize, len: usize) -> [&[f32]; 3] {
         [
             self.row(0, y, x0, dx, len),
@@ -54,6 +55,7 @@ impl PaddedRows {
     }
 
     /// Channel `c`, row `y`, columns `reflect(x0 + dx) ..` (`len` of them, `|dx| <= pad`).
+    #[inline]
     pub(crate) fn row(&self, c: usize, y: usize, x0: usize, dx: isize, len: usize) -> &[f32] {
         let start = (c * self.h + y) * (self.w + 2 * self.pad)
             + (x0 + self.pad)
