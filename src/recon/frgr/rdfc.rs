@@ -24,11 +24,11 @@
 //! margin) and accumulators stay in the core's cache instead of one full-image pass per step
 //! and offset. Inputs are padded by the window radius (reflect-101) so that a neighbour row is
 //! a slice; the colour distance is computed once per offset for the tile and a `patch` margin
-//! (reflected beyond the image's borders, so that no column needs `reflect`), then patch-summed
-//! by shifted-slice sums (up to 8 rows per pass; with the release's radii 1 and 3, the radius-3
-//! rows reuse the radius-1 ones: three terms instead of seven), so a candidate costs about the
-//! same for any patch size;
-//! offsets are weighed in pairs (one pass over the accumulators for two offsets, the same sums
+//! (reflected beyond the image's borders, columns and rows, so that no sum needs `reflect`),
+//! then patch-summed by shifted-slice sums, the vertical ones over the whole tile at once (up
+//! to 8 rows per pass; with the release's radii 1 and 3, the radius-3 sums reuse radius-1 sums
+//! in both directions: three terms instead of seven), so a candidate costs about the same for
+//! any patch size; offsets are weighed in pairs (one pass over the accumulators for two offsets, the same sums
 //! in the same order); the exponential is a branch-free polynomial (`fastmath`), which
 //! vectorises where libm's `expf` does not. The row kernels are also compiled for AVX-512 and
 //! for AVX2 + FMA, picked at run time (`multiversion`; the same bits, as Rust never fuses a
@@ -276,6 +276,25 @@ fn box_rows_1_3(d: &[f32], ext: &mut [f32], out1: &mut [f32], out3: &mut [f32]) 
     add_row_batch(out3, &[&ext[..tw], &d[3..], &ext[4..]], true);
 }
 
+/// The vertical counterpart of [`box_rows_1_3`] over a whole tile: `h1` and `h3` hold the
+/// horizontal sums of the tile's `th` rows and 3 more either side (`tw` wide); `v1` gets their
+/// radius-1 sums (`h1` rows `t - 1, t, t + 1` in order), `v3` the radius-3 ones as `W(t - 2) +
+/// h3(t) + W(t + 2)`, `W` the radius-1 sums of `h3` (kept in `wsum`, `th + 4` rows).
+fn box_rows_1_3_vertical(
+    h1: &[f32],
+    h3: &[f32],
+    tw: usize,
+    wsum: &mut [f32],
+    v1: &mut [f32],
+    v3: &mut [f32],
+) {
+    let tn = v1.len();
+    add_rows(v1, (0..3).map(|t| &h1[(2 + t) * tw..]));
+    let wsum = &mut wsum[..tn + 4 * tw];
+    add_rows(wsum, (0..3).map(|t| &h3[t * tw..]));
+    add_rows(v3, [&wsum[..], &h3[3 * tw..], &wsum[4 * tw..]].into_iter());
+}
+
 /// `out = sum of the rows` (at least one, each at least `out.len()` long), added in order:
 /// up to [`ROW_BATCH`] rows per pass over `out` (a 7 x 7 patch sum is one pass, not six).
 fn add_rows<'a>(out: &mut [f32], rows: impl Iterator<Item = &'a [f32]>) {
@@ -422,15 +441,21 @@ impl Nlm<'_> {
         let (dwp, off) = (tw + 2 * p, p - (x0 - xs));
         let mut delta = try_vec(dwp * (ye - ys), 0.0f32)?;
         let mut ext = vec![0.0f32; dwp];
-        // Per slot (the offsets of a group): horizontal patch sums per radius, the rows'
-        // vertical patch sums and feature distances.
+        // Per slot (the offsets of a group): horizontal and vertical patch sums per radius,
+        // and a row's feature distances.
         let per_radius = |len| -> Result<Vec<Vec<f32>>> {
             self.radii.iter().map(|_| try_vec(len, 0.0f32)).collect()
         };
+        // The horizontal sums' rows span the tile's rows and `p` more either side (beyond the
+        // image's borders reflected), so that the vertical sums are sums of shifted blocks,
+        // the whole tile at once; row `ys` sits at `offy`.
+        let (dhp, offy) = (th + 2 * p, p - (y0 - ys));
         let mut hsum: Vec<Vec<Vec<f32>>> = (0..GROUP)
-            .map(|_| per_radius(tw * (ye - ys)))
+            .map(|_| per_radius(tw * dhp))
             .collect::<Result<_>>()?;
-        let mut patched = [0; GROUP].map(|_| vec![vec![0.0f32; tw]; self.radii.len()]);
+        let mut vsum: Vec<Vec<Vec<f32>>> =
+            (0..GROUP).map(|_| per_radius(tn)).collect::<Result<_>>()?;
+        let mut wsum = vec![0.0f32; tw * (th + 4)];
         let mut fd = [0; GROUP].map(|_| vec![0.0f32; tw]);
         let zeros = vec![0.0f32; tw];
         let mut acc = vec![0.0f32; tw];
@@ -462,17 +487,39 @@ impl Nlm<'_> {
                             row[j] = row[reflect(c, w) + p - x0];
                         }
                     }
+                    let computed = offy * tw..(offy + ye - ys) * tw;
                     if let ([h1, h3], [1, 3]) = (&mut hsum[..], &self.radii[..]) {
-                        let rows = h1.chunks_exact_mut(tw).zip(h3.chunks_exact_mut(tw));
+                        let rows = (h1[computed.clone()].chunks_exact_mut(tw))
+                            .zip(h3[computed].chunks_exact_mut(tw));
                         for (d, (o1, o3)) in delta.chunks_exact(dwp).zip(rows) {
                             box_rows_1_3(d, &mut ext, o1, o3);
                         }
+                    } else {
+                        for (hs, &pr) in hsum.iter_mut().zip(&self.radii) {
+                            let rows = hs[computed.clone()].chunks_exact_mut(tw);
+                            for (d, out) in delta.chunks_exact(dwp).zip(rows) {
+                                box_row(d, p, pr, out);
+                            }
+                        }
+                    }
+                    for hs in hsum.iter_mut() {
+                        for j in (0..offy).chain(offy + ye - ys..dhp) {
+                            let c = (j + y0) as isize - p as isize;
+                            let from = reflect(c, h) + p - y0;
+                            hs.copy_within(from * tw..(from + 1) * tw, j * tw);
+                        }
+                    }
+                }
+                // Vertical patch sums of the whole tile.
+                for (vsum, hsum) in vsum.iter_mut().zip(&hsum).take(group.len()) {
+                    if let ([v1, v3], [h1, h3], [1, 3]) =
+                        (&mut vsum[..], &hsum[..], &self.radii[..])
+                    {
+                        box_rows_1_3_vertical(h1, h3, tw, &mut wsum, v1, v3);
                         continue;
                     }
-                    for (hs, &pr) in hsum.iter_mut().zip(&self.radii) {
-                        for (d, out) in delta.chunks_exact(dwp).zip(hs.chunks_exact_mut(tw)) {
-                            box_row(d, p, pr, out);
-                        }
+                    for ((v, hs), &pr) in vsum.iter_mut().zip(hsum).zip(&self.radii) {
+                        add_rows(v, (0..=2 * pr).map(|t| &hs[(p - pr + t) * tw..]));
                     }
                 }
             }
@@ -486,26 +533,13 @@ impl Nlm<'_> {
                 for (slot, &(ox, _)) in group.iter().enumerate() {
                     let qy = qys[slot];
                     self.feature_distance(&mut fd[slot], &mut acc, (x0, tw), (y, qy), ox);
-                    // Vertical patch sums of this row.
-                    for ((pa, hs), &pr) in
-                        patched[slot].iter_mut().zip(&hsum[slot]).zip(&self.radii)
-                    {
-                        let r = pr as isize;
-                        add_rows(
-                            pa,
-                            (-r..=r).map(|dt| {
-                                let i = reflect(y as isize + dt, h) - ys;
-                                &hs[i * tw..(i + 1) * tw]
-                            }),
-                        );
-                    }
                 }
                 for (k, &patch_scale) in self.patch_scale.iter().enumerate() {
                     // dist = max(patch mean / k_c^2, d_f, 0), or max(d_f, 0) without colour
                     // term; d_f >= 0 (not NaN) already.
                     let inputs = |slot: usize| {
                         let (patch, scale) = match patch_scale {
-                            Some((j, scale)) => (&patched[slot][j][..], scale),
+                            Some((j, scale)) => (&vsum[slot][j][t * tw..(t + 1) * tw], scale),
                             None => (&zeros[..], 0.0),
                         };
                         WeighInputs {
