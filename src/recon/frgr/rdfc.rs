@@ -185,7 +185,8 @@ fn colour_distance_row(
 }
 
 /// `fd = max(fd, inv * sum_c (f_p - f_q)^2)` over a row, for a 3-channel feature (`inv`:
-/// `1 / (3 k_f^2 D_p)`). A NaN distance leaves `fd` unchanged.
+/// `1 / (3 k_f^2 D_p)`), `fd` read as 0 when `fresh` (the first feature: no zeroing pass). A NaN
+/// distance leaves `fd` unchanged.
 #[multiversion::multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
     "x86_64+avx2+fma"
@@ -195,13 +196,23 @@ fn feature_distance_row3(
     [p0, p1, p2]: [&[f32]; 3],
     [q0, q1, q2]: [&[f32]; 3],
     inv: &[f32],
+    fresh: bool,
 ) {
     let n = fd.len();
     let (p0, p1, p2, q0, q1, q2) = (&p0[..n], &p1[..n], &p2[..n], &q0[..n], &q1[..n], &q2[..n]);
     let inv = &inv[..n];
-    for i in 0..n {
-        let (d0, d1, d2) = (p0[i] - q0[i], p1[i] - q1[i], p2[i] - q2[i]);
-        fd[i] = max((d0 * d0 + d1 * d1 + d2 * d2) * inv[i], fd[i]);
+    // Two loops rather than a closure: a closure is not inlined into the multiversioned
+    // copies, which then do not vectorise.
+    if fresh {
+        for i in 0..n {
+            let (d0, d1, d2) = (p0[i] - q0[i], p1[i] - q1[i], p2[i] - q2[i]);
+            fd[i] = max((d0 * d0 + d1 * d1 + d2 * d2) * inv[i], 0.0);
+        }
+    } else {
+        for i in 0..n {
+            let (d0, d1, d2) = (p0[i] - q0[i], p1[i] - q1[i], p2[i] - q2[i]);
+            fd[i] = max((d0 * d0 + d1 * d1 + d2 * d2) * inv[i], fd[i]);
+        }
     }
 }
 
@@ -256,43 +267,66 @@ fn weigh_rows<const P: usize>(
     }
 }
 
-/// The horizontal patch sums of one row of colour distances `d`, reflected (reflect-101) to
-/// `r_max` columns either side of the tile's `out.len()` (the largest radius): `out[x] =
-/// sum_{|t| <= r} d[r_max + x + t]`, terms in order of `t`.
-fn box_row(d: &[f32], r_max: usize, r: usize, out: &mut [f32]) {
-    add_rows(out, (0..=2 * r).map(|t| &d[r_max - r + t..]));
-}
-
-/// [`box_row`] of radius 1 (`out1`, the same sums) and 3 (`out3`) at once, with `r_max = 3`:
-/// the radius-3 sum reuses the radius-1 one, `h_3(x) = h_1(x - 2) + d(x) + h_1(x + 2)`, three
-/// terms instead of seven (added in that order: a different rounding from `box_row`'s, within
-/// the tests' tolerance). `ext` is scratch of at least `d.len()`.
-fn box_rows_1_3(d: &[f32], ext: &mut [f32], out1: &mut [f32], out3: &mut [f32]) {
-    let tw = out1.len();
-    // ext[j] = h_1 at d's column j + 1.
-    let ext = &mut ext[..tw + 4];
-    add_rows(ext, (0..3).map(|t| &d[t..]));
-    out1.copy_from_slice(&ext[2..2 + tw]);
-    add_row_batch(out3, &[&ext[..tw], &d[3..], &ext[4..]], true);
-}
-
-/// The vertical counterpart of [`box_rows_1_3`] over a whole tile: `h1` and `h3` hold the
-/// horizontal sums of the tile's `th` rows and 3 more either side (`tw` wide); `v1` gets their
-/// radius-1 sums (`h1` rows `t - 1, t, t + 1` in order), `v3` the radius-3 ones as `W(t - 2) +
-/// h3(t) + W(t + 2)`, `W` the radius-1 sums of `h3` (kept in `wsum`, `th + 4` rows).
-fn box_rows_1_3_vertical(
-    h1: &[f32],
-    h3: &[f32],
-    tw: usize,
+/// The patch sums of one window offset's colour distances over a tile, per radius in `radii`
+/// (their largest is `p`): `delta` holds the distances of `rows` image rows, each `dw` wide (the
+/// tile's columns and `p` more either side, reflected past the image's borders); `hsum[j]`
+/// gets the horizontal sums of radius `radii[j]` of those rows, placed from row `offy` of a
+/// block of `th + 2p` rows whose others are then filled by reflection (`reflect_row(j)`: the
+/// block row whose sums row `j` takes); `vsum[j]` gets the vertical sums of `hsum[j]` over the
+/// tile's `th` rows. Every block has rows `dw` wide, and every sum runs over whole blocks at
+/// once: a column near a row's ends mixes two rows, and only the tile's columns, `p ..
+/// p + tw`, are read. With radii 1 and 3 (the release's) the radius-3 sums reuse radius-1
+/// sums in both directions, `h_3(x) = h_1(x - 2) + d(x) + h_1(x + 2)`: three terms instead of
+/// seven (a different rounding from seven in a row, within the tests' tolerance); `wsum` is
+/// scratch of at least `(th + 4) dw`.
+fn patch_sums(
+    delta: &[f32],
+    (dw, rows, offy, th): (usize, usize, usize, usize),
+    radii: &[usize],
+    reflect_row: impl Fn(usize) -> usize,
+    hsum: &mut [Vec<f32>],
+    vsum: &mut [Vec<f32>],
     wsum: &mut [f32],
-    v1: &mut [f32],
-    v3: &mut [f32],
 ) {
-    let tn = v1.len();
-    add_rows(v1, (0..3).map(|t| &h1[(2 + t) * tw..]));
-    let wsum = &mut wsum[..tn + 4 * tw];
-    add_rows(wsum, (0..3).map(|t| &h3[t * tw..]));
-    add_rows(v3, [&wsum[..], &h3[3 * tw..], &wsum[4 * tw..]].into_iter());
+    let p = radii.last().copied().unwrap_or(0);
+    let (n, at) = (rows * dw, offy * dw);
+    let composite = radii == [1, 3];
+    for (j, (hs, &r)) in hsum.iter_mut().zip(radii).enumerate() {
+        if !(composite && j == 1) {
+            add_rows(
+                &mut hs[at + r..at + n - r],
+                (0..=2 * r).map(|t| &delta[t..]),
+            );
+        }
+    }
+    if composite {
+        // The radius-3 sums from the radius-1 ones.
+        let (h1, h3) = hsum.split_at_mut(1);
+        add_row_batch(
+            &mut h3[0][at + 3..at + n - 3],
+            &[&h1[0][at + 1..], &delta[3..], &h1[0][at + 5..]],
+            true,
+        );
+    }
+    for hs in hsum.iter_mut() {
+        for j in (0..offy).chain(offy + rows..th + 2 * p) {
+            let from = reflect_row(j);
+            hs.copy_within(from * dw..(from + 1) * dw, j * dw);
+        }
+    }
+    let tn = th * dw;
+    for (j, ((v, hs), &r)) in vsum.iter_mut().zip(&*hsum).zip(radii).enumerate() {
+        if composite && j == 1 {
+            let w = &mut wsum[..tn + 4 * dw];
+            add_rows(w, (0..3).map(|t| &hs[t * dw..]));
+            add_rows(
+                &mut v[..tn],
+                [&w[..], &hs[3 * dw..], &w[4 * dw..]].into_iter(),
+            );
+        } else {
+            add_rows(&mut v[..tn], (0..=2 * r).map(|t| &hs[(p - r + t) * dw..]));
+        }
+    }
 }
 
 /// `out = sum of the rows` (at least one, each at least `out.len()` long), added in order:
@@ -390,12 +424,17 @@ impl Nlm<'_> {
         ox: isize,
     ) {
         let w = self.colour.w;
-        fd.fill(0.0);
+        // `fd` starts at 0: zeroed here unless the first feature's pass writes it whole.
+        let mut fresh = self.features.first().is_some_and(|(f, _)| f.channels == 3);
+        if !fresh {
+            fd.fill(0.0);
+        }
         for (f, inv) in &self.features {
             let inv = &inv[y * w + x0..y * w + x0 + len];
             if f.channels == 3 {
                 let (fp, fq) = (f.rows3(y, x0, 0, len), f.rows3(qy, x0, ox, len));
-                feature_distance_row3(fd, fp, fq, inv);
+                feature_distance_row3(fd, fp, fq, inv, fresh);
+                fresh = false;
                 continue;
             }
             acc.fill(0.0);
@@ -440,7 +479,6 @@ impl Nlm<'_> {
         // sits at `off`.
         let (dwp, off) = (tw + 2 * p, p - (x0 - xs));
         let mut delta = try_vec(dwp * (ye - ys), 0.0f32)?;
-        let mut ext = vec![0.0f32; dwp];
         // Per slot (the offsets of a group): horizontal and vertical patch sums per radius,
         // and a row's feature distances.
         let per_radius = |len| -> Result<Vec<Vec<f32>>> {
@@ -451,11 +489,12 @@ impl Nlm<'_> {
         // the whole tile at once; row `ys` sits at `offy`.
         let (dhp, offy) = (th + 2 * p, p - (y0 - ys));
         let mut hsum: Vec<Vec<Vec<f32>>> = (0..GROUP)
-            .map(|_| per_radius(tw * dhp))
+            .map(|_| per_radius(dwp * dhp))
             .collect::<Result<_>>()?;
-        let mut vsum: Vec<Vec<Vec<f32>>> =
-            (0..GROUP).map(|_| per_radius(tn)).collect::<Result<_>>()?;
-        let mut wsum = vec![0.0f32; tw * (th + 4)];
+        let mut vsum: Vec<Vec<Vec<f32>>> = (0..GROUP)
+            .map(|_| per_radius(dwp * th))
+            .collect::<Result<_>>()?;
+        let mut wsum = try_vec(dwp * (th + 4), 0.0f32)?;
         let mut fd = [0; GROUP].map(|_| vec![0.0f32; tw]);
         let zeros = vec![0.0f32; tw];
         let mut acc = vec![0.0f32; tw];
@@ -471,7 +510,7 @@ impl Nlm<'_> {
         // would): a group reads and writes the accumulators once.
         for group in offsets.chunks(GROUP) {
             if !self.radii.is_empty() {
-                for (hsum, &(ox, oy)) in hsum.iter_mut().zip(group) {
+                for (slot, (hsum, &(ox, oy))) in hsum.iter_mut().zip(group).enumerate() {
                     // Colour distance rows (the mean over channels' 1/3 is applied later).
                     for (row, py) in delta.chunks_exact_mut(dwp).zip(ys..ye) {
                         let qy = reflect(py as isize + oy, h);
@@ -487,40 +526,15 @@ impl Nlm<'_> {
                             row[j] = row[reflect(c, w) + p - x0];
                         }
                     }
-                    let computed = offy * tw..(offy + ye - ys) * tw;
-                    if let ([h1, h3], [1, 3]) = (&mut hsum[..], &self.radii[..]) {
-                        let rows = (h1[computed.clone()].chunks_exact_mut(tw))
-                            .zip(h3[computed].chunks_exact_mut(tw));
-                        for (d, (o1, o3)) in delta.chunks_exact(dwp).zip(rows) {
-                            box_rows_1_3(d, &mut ext, o1, o3);
-                        }
-                    } else {
-                        for (hs, &pr) in hsum.iter_mut().zip(&self.radii) {
-                            let rows = hs[computed.clone()].chunks_exact_mut(tw);
-                            for (d, out) in delta.chunks_exact(dwp).zip(rows) {
-                                box_row(d, p, pr, out);
-                            }
-                        }
-                    }
-                    for hs in hsum.iter_mut() {
-                        for j in (0..offy).chain(offy + ye - ys..dhp) {
-                            let c = (j + y0) as isize - p as isize;
-                            let from = reflect(c, h) + p - y0;
-                            hs.copy_within(from * tw..(from + 1) * tw, j * tw);
-                        }
-                    }
-                }
-                // Vertical patch sums of the whole tile.
-                for (vsum, hsum) in vsum.iter_mut().zip(&hsum).take(group.len()) {
-                    if let ([v1, v3], [h1, h3], [1, 3]) =
-                        (&mut vsum[..], &hsum[..], &self.radii[..])
-                    {
-                        box_rows_1_3_vertical(h1, h3, tw, &mut wsum, v1, v3);
-                        continue;
-                    }
-                    for ((v, hs), &pr) in vsum.iter_mut().zip(hsum).zip(&self.radii) {
-                        add_rows(v, (0..=2 * pr).map(|t| &hs[(p - pr + t) * tw..]));
-                    }
+                    patch_sums(
+                        &delta,
+                        (dwp, ye - ys, offy, th),
+                        &self.radii,
+                        |j| reflect((j + y0) as isize - p as isize, h) + p - y0,
+                        hsum,
+                        &mut vsum[slot],
+                        &mut wsum,
+                    );
                 }
             }
             for (t, y) in (y0..y1).enumerate() {
@@ -534,19 +548,24 @@ impl Nlm<'_> {
                     let qy = qys[slot];
                     self.feature_distance(&mut fd[slot], &mut acc, (x0, tw), (y, qy), ox);
                 }
+                // The neighbours' data rows of each slot, shared by the candidates.
+                let data: [[&[f32]; 3]; GROUP] = std::array::from_fn(|s| {
+                    let ox = group.get(s).map_or(0, |&(ox, _)| ox);
+                    self.data.rows3(qys[s], x0, ox, tw)
+                });
                 for (k, &patch_scale) in self.patch_scale.iter().enumerate() {
                     // dist = max(patch mean / k_c^2, d_f, 0), or max(d_f, 0) without colour
                     // term; d_f >= 0 (not NaN) already.
                     let inputs = |slot: usize| {
                         let (patch, scale) = match patch_scale {
-                            Some((j, scale)) => (&vsum[slot][j][t * tw..(t + 1) * tw], scale),
+                            Some((j, scale)) => (&vsum[slot][j][t * dwp + p..][..tw], scale),
                             None => (&zeros[..], 0.0),
                         };
                         WeighInputs {
                             patch,
                             scale,
                             fd: &fd[slot],
-                            data: self.data.rows3(qys[slot], x0, group[slot].0, tw),
+                            data: data[slot],
                         }
                     };
                     let at = k * tn + t * tw;
