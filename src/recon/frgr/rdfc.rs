@@ -25,10 +25,10 @@
 //! and offset. Inputs are padded by the window radius (reflect-101) so that a neighbour row is
 //! a slice; the colour distance is computed once per offset for the tile and a `patch` margin
 //! (reflected beyond the image's borders, columns and rows, so that no sum needs `reflect`),
-//! then patch-summed by shifted-slice sums, the vertical ones over the whole tile at once (up
-//! to 8 rows per pass; with the release's radii 1 and 3, the radius-3 sums reuse radius-1 sums
-//! in both directions: three terms instead of seven), so a candidate costs about the same for
-//! any patch size; offsets are weighed in pairs (one pass over the accumulators for two offsets, the same sums
+//! then patch-summed by shifted-slice sums over the whole tile at once (up to 8 rows per pass;
+//! with the release's radii 1 and 3, the radius-3 sums reuse radius-1 sums in both directions:
+//! three terms instead of seven), so a candidate costs about the same for any patch size;
+//! offsets are weighed in pairs (one pass over the accumulators for two offsets, the same sums
 //! in the same order); the exponential is a branch-free polynomial (`fastmath`), which
 //! vectorises where libm's `expf` does not. The row kernels are also compiled for AVX-512 and
 //! for AVX2 + FMA, picked at run time (`multiversion`; the same bits, as Rust never fuses a
