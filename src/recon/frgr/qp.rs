@@ -144,9 +144,9 @@ fn filter_rows<const K: usize>(
 
 /// Filters image rows `band * BAND ..` (at most [`BAND`] of them); returns per row colour then
 /// variance, channel by channel, and the pixels skipped. Compiled for AVX-512 and AVX2 too,
-/// picked at run time: the whole solver is inlined into it, so its `F32x` arithmetic becomes 512-bit
-/// instructions (one register per value) or 256-bit ones (two). AVX-512 pays since the solver's
-/// chains are a third as long (`simplex::dot3`) and its 32 registers hold `s`. No FMA
+/// picked at run time: the whole solver is inlined into it, so its `F32x` arithmetic becomes
+/// 512-bit instructions (one register per value) or 256-bit ones (two). AVX-512 pays since the
+/// solver's chains are a third as long (`simplex::dot3`) and its 32 registers hold `s`. No FMA
 /// contraction happens in Rust, so every version computes the same bits.
 #[multiversion::multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",

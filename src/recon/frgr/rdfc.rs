@@ -267,6 +267,13 @@ fn weigh_rows<const P: usize>(
     }
 }
 
+/// Where index `j` of a padded row (or column) of a tile reads from: padded index `j` is image
+/// coordinate `start + j - p` (`start` the tile's first, `p` the padding), reflected (reflect-101)
+/// into `0..len` and given back as a padded index.
+fn reflected(j: usize, start: usize, p: usize, len: usize) -> usize {
+    reflect((j + start) as isize - p as isize, len) + p - start
+}
+
 /// The patch sums of one window offset's colour distances over a tile, per radius in `radii`
 /// (their largest is `p`): `delta` holds the distances of `rows` image rows, each `dw` wide (the
 /// tile's columns and `p` more either side, reflected past the image's borders); `hsum[j]`
@@ -522,15 +529,14 @@ impl Nlm<'_> {
                             self.var.rows3(qy, xs, ox, dw),
                         );
                         for j in (0..off).chain(off + dw..dwp) {
-                            let c = (j + x0) as isize - p as isize;
-                            row[j] = row[reflect(c, w) + p - x0];
+                            row[j] = row[reflected(j, x0, p, w)];
                         }
                     }
                     patch_sums(
                         &delta,
                         (dwp, ye - ys, offy, th),
                         &self.radii,
-                        |j| reflect((j + y0) as isize - p as isize, h) + p - y0,
+                        |j| reflected(j, y0, p, h),
                         hsum,
                         &mut vsum[slot],
                         &mut wsum,
