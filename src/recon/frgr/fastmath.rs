@@ -1,11 +1,13 @@
-//! Elementary functions written with plain `f32` operations and no branches, so that the loops
-//! calling them vectorise (`f32::exp` is a call into libm, one lane at a time).
+//! Elementary functions written with plain `f32` operations (and `mul_add`) and no branches, so
+//! that the loops calling them vectorise (`f32::exp` is a call into libm, one lane at a time).
 
 /// `e^x` for `x <= 0`, as Cephes' `expf`: `x = n ln 2 + r` with `n` the nearest integer to
 /// `x / ln 2` (so `|r| <= ln 2 / 2`), `e^r` by a degree-6 polynomial, `2^n` built from its
 /// exponent bits. Relative error below 2e-7 on `[-87, 0]` (tested); 0 below -87 (where `e^x`
 /// is below 1.7e-38) and for `-inf`. Positive `x` is outside its domain (wrong results above
-/// about 88, where `2^n` would overflow); NaN gives NaN.
+/// about 88, where `2^n` would overflow); NaN gives NaN. The polynomial and the reduction are
+/// `mul_add`s: call it from kernels compiled with FMA (the multiversioned ones); on a build
+/// without FMA each is a (correctly rounded, slow) call into libm.
 #[inline(always)]
 pub(crate) fn exp_nonpositive(x: f32) -> f32 {
     // Adding 1.5 * 2^23 rounds to an integer (current rounding mode: to nearest), which then
@@ -14,14 +16,15 @@ pub(crate) fn exp_nonpositive(x: f32) -> f32 {
     // ln 2 split in two so that `n * LN2_HI` is exact for |n| < 2^15.
     const LN2_HI: f32 = 355.0 / 512.0;
     const LN2_LO: f32 = -2.121_944_4e-4;
-    let t = x * std::f32::consts::LOG2_E + ROUND;
+    let t = x.mul_add(std::f32::consts::LOG2_E, ROUND);
     let n = t - ROUND;
-    let r = x - n * LN2_HI - n * LN2_LO;
-    let p = ((((1.987_569_2e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r
-        + 1.666_666_5e-1)
-        * r
-        + 0.5;
-    let er = p * (r * r) + r + 1.0;
+    let r = n.mul_add(-LN2_LO, n.mul_add(-LN2_HI, x));
+    let p = 1.987_569_2e-4f32.mul_add(r, 1.398_199_9e-3);
+    let p = p.mul_add(r, 8.333_452e-3);
+    let p = p.mul_add(r, 4.166_579_6e-2);
+    let p = p.mul_add(r, 1.666_666_5e-1);
+    let p = p.mul_add(r, 0.5);
+    let er = p.mul_add(r * r, r) + 1.0;
     // `t`'s representation is 0x4B40_0000 + n: shifted by 23 only `n`'s low 9 bits remain, in
     // the exponent field; biased by 127 they make 2^n (-126 <= n <= 0 here).
     let two_n = f32::from_bits((t.to_bits() << 23).wrapping_add(127 << 23));

@@ -137,9 +137,9 @@ fn add_taps(
         // feature are never subnormal (slow on x86).
         let x = -(range + spatial);
         let wq = if x < -50.0 { 0.0 } else { exp_nonpositive(x) };
-        n0[i] += wq * q0[i];
-        n1[i] += wq * q1[i];
-        n2[i] += wq * q2[i];
+        n0[i] = wq.mul_add(q0[i], n0[i]);
+        n1[i] = wq.mul_add(q1[i], n1[i]);
+        n2[i] = wq.mul_add(q2[i], n2[i]);
         den[i] += wq;
     }
 }

@@ -38,6 +38,9 @@
 //! copies stay small), with no `reflect` in the inner loops; the scratch is per band, not per
 //! pixel. Bands run in parallel and no result depends on the thread count or the CPU. A band's
 //! whole solve is compiled for AVX-512 and AVX2 as well and picked at run time (`multiversion`).
+//! The sums of products (`b . s`, the update of `s`, the rows' norms and costs, the output's
+//! weighted sums) are written as `mul_add`: one FMA instruction in those builds, and the same
+//! correctly rounded result in software on a CPU without FMA (slower there, but the same bits).
 //!
 //! The module's parts: `level.rs` (a level's inputs, term weights, vanishing terms),
 //! `band.rs` (padded bands of rows and the bias terms read from them), `simplex.rs` (the
@@ -146,8 +149,9 @@ fn filter_rows<const K: usize>(
 /// variance, channel by channel, and the pixels skipped. Compiled for AVX-512 and AVX2 too,
 /// picked at run time: the whole solver is inlined into it, so its `F32x` arithmetic becomes
 /// 512-bit instructions (one register per value) or 256-bit ones (two). AVX-512 pays since the
-/// solver's chains are a third as long (`simplex::dot3`) and its 32 registers hold `s`. No FMA
-/// contraction happens in Rust, so every version computes the same bits.
+/// solver's chains are a third as long (`simplex::dot3`) and its 32 registers hold `s`. Rust
+/// never contracts `a * b + c` on its own, and the explicit `mul_add`s round once everywhere, so
+/// every version computes the same bits.
 #[multiversion::multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
     "x86_64+avx2+fma"
@@ -311,11 +315,11 @@ impl<const K: usize> Ctx<'_, K> {
                         let raw = d + addends[term.residual.addend(c)];
                         let br = term.sq * raw;
                         if term.counts {
-                            e = e + raw * raw;
+                            e = raw.mul_add(raw, e);
                         }
                         if term.row {
                             bq[row] = br;
-                            col2 = col2 + br * br;
+                            col2 = br.mul_add(br, col2);
                             row += 1;
                         }
                     }
@@ -331,9 +335,9 @@ impl<const K: usize> Ctx<'_, K> {
             let wq = sc.w[q] * inverse;
             sc.w[q] = wq;
             for (sr, &br) in st.s.iter_mut().zip(&sc.b[q]) {
-                *sr = *sr + br * wq;
+                *sr = br.mul_add(wq, *sr);
             }
-            st.svw = st.svw + sc.v[q] * wq * wq;
+            st.svw = (sc.v[q] * wq).mul_add(wq, st.svw);
         }
         let problem = Simplex::<K> {
             b: &sc.b[..n],
@@ -347,8 +351,8 @@ impl<const K: usize> Ctx<'_, K> {
                 let py = y - self.y0 + dy;
                 let (im, va) = (self.img.row(c, py, x0), self.var.row(c, py, x0));
                 for (dx, &wq) in sc.w[dy * side..(dy + 1) * side].iter().enumerate() {
-                    o = o + wq * F32x::load(&im[dx..]);
-                    ov = ov + wq * wq * F32x::load(&va[dx..]);
+                    o = wq.mul_add(F32x::load(&im[dx..]), o);
+                    ov = (wq * wq).mul_add(F32x::load(&va[dx..]), ov);
                 }
             }
             for l in (0..LANES).filter(|&l| solve[l]) {

@@ -31,9 +31,11 @@
 //! offsets are weighed in pairs (one pass over the accumulators for two offsets, the same sums
 //! in the same order); the exponential is a branch-free polynomial (`fastmath`), which
 //! vectorises where libm's `expf` does not. The row kernels are also compiled for AVX-512 and
-//! for AVX2 + FMA, picked at run time (`multiversion`; the same bits, as Rust never fuses a
-//! multiply-add). What each of these gained is in `docs/benchmarks.md`. The previous
-//! implementation is kept in the tests as the reference.
+//! for AVX2 + FMA, picked at run time (`multiversion`); the exponential's polynomial, the
+//! accumulations and the squared differences are explicit `mul_add`s (one FMA instruction
+//! there; correctly rounded in software on a CPU without FMA, so the same bits everywhere, as
+//! Rust never fuses a multiply-add on its own). What each of these gained is in
+//! `docs/benchmarks.md`. The previous implementation is kept in the tests as the reference.
 
 use rayon::prelude::*;
 
@@ -174,7 +176,7 @@ fn colour_distance_row(
     let (vq0, vq1, vq2) = (&vq0[..n], &vq1[..n], &vq2[..n]);
     let term = |a: f32, b: f32, va: f32, vb: f32| {
         let diff = a - b;
-        (diff * diff - (va + min(va, vb))) / (1e-10 + va + vb)
+        diff.mul_add(diff, -(va + min(va, vb))) / (1e-10 + va + vb)
     };
     for i in 0..n {
         let t0 = term(cp0[i], cq0[i], vp0[i], vq0[i]);
@@ -206,12 +208,12 @@ fn feature_distance_row3(
     if fresh {
         for i in 0..n {
             let (d0, d1, d2) = (p0[i] - q0[i], p1[i] - q1[i], p2[i] - q2[i]);
-            fd[i] = max((d0 * d0 + d1 * d1 + d2 * d2) * inv[i], 0.0);
+            fd[i] = max(d2.mul_add(d2, d1.mul_add(d1, d0 * d0)) * inv[i], 0.0);
         }
     } else {
         for i in 0..n {
             let (d0, d1, d2) = (p0[i] - q0[i], p1[i] - q1[i], p2[i] - q2[i]);
-            fd[i] = max((d0 * d0 + d1 * d1 + d2 * d2) * inv[i], fd[i]);
+            fd[i] = max(d2.mul_add(d2, d1.mul_add(d1, d0 * d0)) * inv[i], fd[i]);
         }
     }
 }
@@ -258,9 +260,9 @@ fn weigh_rows<const P: usize>(
             let wgt = exp_nonpositive(-max(patch[o][i] * scale[o], fd[o][i]));
             s += wgt;
             m = max(m, wgt);
-            a0 += wgt * d0[o][i];
-            a1 += wgt * d1[o][i];
-            a2 += wgt * d2[o][i];
+            a0 = wgt.mul_add(d0[o][i], a0);
+            a1 = wgt.mul_add(d1[o][i], a1);
+            a2 = wgt.mul_add(d2[o][i], a2);
         }
         (den[i], maxw[i]) = (s, m);
         (n0[i], n1[i], n2[i]) = (a0, a1, a2);

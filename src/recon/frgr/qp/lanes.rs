@@ -93,6 +93,31 @@ impl F32x {
         r
     }
 
+    /// `self * a + b` per lane with one rounding (`f32::mul_add`: an FMA instruction where the
+    /// CPU has one, the same bits in software where not).
+    #[inline(always)]
+    pub fn mul_add(self, a: F32x, b: F32x) -> F32x {
+        let (x, a, b) = (self.0, a.0, b.0);
+        F32x([
+            x[0].mul_add(a[0], b[0]),
+            x[1].mul_add(a[1], b[1]),
+            x[2].mul_add(a[2], b[2]),
+            x[3].mul_add(a[3], b[3]),
+            x[4].mul_add(a[4], b[4]),
+            x[5].mul_add(a[5], b[5]),
+            x[6].mul_add(a[6], b[6]),
+            x[7].mul_add(a[7], b[7]),
+            x[8].mul_add(a[8], b[8]),
+            x[9].mul_add(a[9], b[9]),
+            x[10].mul_add(a[10], b[10]),
+            x[11].mul_add(a[11], b[11]),
+            x[12].mul_add(a[12], b[12]),
+            x[13].mul_add(a[13], b[13]),
+            x[14].mul_add(a[14], b[14]),
+            x[15].mul_add(a[15], b[15]),
+        ])
+    }
+
     #[inline(always)]
     pub fn sqrt(self) -> F32x {
         self.map(f32::sqrt)

@@ -118,7 +118,12 @@ impl<const K: usize> Simplex<'_, K> {
             }
             let (bi, vi) = (&b[i], v[i]);
             let wi = scale * w[i];
-            let qw = ahead.take().unwrap_or_else(|| vi * wi + dot3(bi, &s));
+            // A `match`, not `unwrap_or_else`: a closure is not inlined into the multiversioned
+            // solver, and compiled for the baseline CPU its `mul_add`s are calls.
+            let qw = match ahead.take() {
+                Some(qw) => qw,
+                None => vi * wi + dot3(bi, &s),
+            };
             let wqw = ss + svw;
             let dqw = qw - wqw;
             let dqd = col2[i] + vi - F32x::splat(2.0) * qw + wqw;
@@ -158,7 +163,7 @@ impl<const K: usize> Simplex<'_, K> {
             let j = next(i);
             let (bj, wj) = (&b[j], scale * w[j]);
             for (sr, &br) in s.iter_mut().zip(bi) {
-                *sr = keep_s * *sr + t_s * br;
+                *sr = t_s.mul_add(br, keep_s * *sr);
             }
             ahead = Some(v[j] * wj + dot3(bj, &s));
         }
@@ -227,7 +232,7 @@ fn norm2<const K: usize>(s: &[F32x; K]) -> F32x {
 fn dot3<const K: usize>(b: &[F32x; K], s: &[F32x; K]) -> F32x {
     let mut acc = [F32x::splat(0.0); 3];
     for (r, (&br, &sr)) in b.iter().zip(s).enumerate() {
-        acc[r % 3] = acc[r % 3] + br * sr;
+        acc[r % 3] = br.mul_add(sr, acc[r % 3]);
     }
     acc[0] + acc[1] + acc[2]
 }
