@@ -37,7 +37,7 @@
 
 use rayon::prelude::*;
 
-use super::fastmath::{exp_nonpositive, max, min};
+use super::fastmath::{exp_nonpositive, fused, madd, max, min};
 use super::util::{reflect, PaddedRows};
 use crate::error::Result;
 use crate::image::{try_vec, Image};
@@ -126,6 +126,7 @@ fn add_taps(
     (vp, vq, inv): (&[f32], &[f32], &[f32]),
     spatial: f32,
 ) {
+    const F: bool = fused!();
     let n = den.len();
     let (p0, p1, p2, q0, q1, q2) = (&p0[..n], &p1[..n], &p2[..n], &q0[..n], &q1[..n], &q2[..n]);
     let (vp, vq, inv) = (&vp[..n], &vq[..n], &inv[..n]);
@@ -136,10 +137,14 @@ fn add_taps(
         // Weights below e^-50 (2e-22 of the centre's) are 0, so that their products with the
         // feature are never subnormal (slow on x86).
         let x = -(range + spatial);
-        let wq = if x < -50.0 { 0.0 } else { exp_nonpositive(x) };
-        n0[i] = wq.mul_add(q0[i], n0[i]);
-        n1[i] = wq.mul_add(q1[i], n1[i]);
-        n2[i] = wq.mul_add(q2[i], n2[i]);
+        let wq = if x < -50.0 {
+            0.0
+        } else {
+            exp_nonpositive::<F>(x)
+        };
+        n0[i] = madd::<F>(wq, q0[i], n0[i]);
+        n1[i] = madd::<F>(wq, q1[i], n1[i]);
+        n2[i] = madd::<F>(wq, q2[i], n2[i]);
         den[i] += wq;
     }
 }

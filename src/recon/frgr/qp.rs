@@ -39,8 +39,9 @@
 //! pixel. Bands run in parallel and no result depends on the thread count or the CPU. A band's
 //! whole solve is compiled for AVX-512 and AVX2 as well and picked at run time (`multiversion`).
 //! The sums of products (`b . s`, the update of `s`, the rows' norms and costs, the output's
-//! weighted sums) are written as `mul_add`: one FMA instruction in those builds, and the same
-//! correctly rounded result in software on a CPU without FMA (slower there, but the same bits).
+//! weighted sums) are `madd`s: one FMA instruction in those builds, a multiply and an add in
+//! the baseline one (a CPU without FMA), so the result is the same on every CPU with FMA, and on
+//! one without it is the unfused arithmetic (measured: the forty-third session's bits).
 //!
 //! The module's parts: `level.rs` (a level's inputs, term weights, vanishing terms),
 //! `band.rs` (padded bands of rows and the bias terms read from them), `simplex.rs` (the
@@ -48,6 +49,7 @@
 
 use rayon::prelude::*;
 
+use super::fastmath::fused;
 use super::util::reflect;
 use crate::error::Result;
 use crate::image::{try_vec, Image};
@@ -150,8 +152,8 @@ fn filter_rows<const K: usize>(
 /// picked at run time: the whole solver is inlined into it, so its `F32x` arithmetic becomes
 /// 512-bit instructions (one register per value) or 256-bit ones (two). AVX-512 pays since the
 /// solver's chains are a third as long (`simplex::dot3`) and its 32 registers hold `s`. Rust
-/// never contracts `a * b + c` on its own, and the explicit `mul_add`s round once everywhere, so
-/// every version computes the same bits.
+/// never contracts `a * b + c` on its own; the `madd`s fuse in both versions (they have FMA),
+/// so the two compute the same bits; the baseline version does not fuse.
 #[multiversion::multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
     "x86_64+avx2+fma"
@@ -210,7 +212,7 @@ fn filter_band<const K: usize>(
                 }
             }
             if solve.contains(&true) {
-                ctx.solve_group(&mut scratch, x0, y, solve, out);
+                ctx.solve_group::<{ fused!() }>(&mut scratch, x0, y, solve, out);
             }
         }
     }
@@ -248,7 +250,7 @@ impl<const K: usize> Ctx<'_, K> {
     /// Builds, solves and applies the QPs of pixels `x0..x0 + LANES` of row `y` (the lanes in
     /// `solve`); writes colour to `out[c * w + x]` and variance to `out[(3 + c) * w + x]`.
     #[inline(always)]
-    fn solve_group(
+    fn solve_group<const FUSED: bool>(
         &self,
         sc: &mut Scratch<K>,
         x0: usize,
@@ -315,11 +317,11 @@ impl<const K: usize> Ctx<'_, K> {
                         let raw = d + addends[term.residual.addend(c)];
                         let br = term.sq * raw;
                         if term.counts {
-                            e = raw.mul_add(raw, e);
+                            e = raw.madd::<FUSED>(raw, e);
                         }
                         if term.row {
                             bq[row] = br;
-                            col2 = br.mul_add(br, col2);
+                            col2 = br.madd::<FUSED>(br, col2);
                             row += 1;
                         }
                     }
@@ -335,24 +337,24 @@ impl<const K: usize> Ctx<'_, K> {
             let wq = sc.w[q] * inverse;
             sc.w[q] = wq;
             for (sr, &br) in st.s.iter_mut().zip(&sc.b[q]) {
-                *sr = br.mul_add(wq, *sr);
+                *sr = br.madd::<FUSED>(wq, *sr);
             }
-            st.svw = (sc.v[q] * wq).mul_add(wq, st.svw);
+            st.svw = (sc.v[q] * wq).madd::<FUSED>(wq, st.svw);
         }
         let problem = Simplex::<K> {
             b: &sc.b[..n],
             v: &sc.v[..n],
             n,
         };
-        problem.solve_from(st, &mut sc.w, Mask::from_bools(solve), 3 * n + 1);
+        problem.solve_from::<FUSED>(st, &mut sc.w, Mask::from_bools(solve), 3 * n + 1);
         for c in 0..3 {
             let (mut o, mut ov) = (F32x::splat(0.0), F32x::splat(0.0));
             for dy in 0..side {
                 let py = y - self.y0 + dy;
                 let (im, va) = (self.img.row(c, py, x0), self.var.row(c, py, x0));
                 for (dx, &wq) in sc.w[dy * side..(dy + 1) * side].iter().enumerate() {
-                    o = wq.mul_add(F32x::load(&im[dx..]), o);
-                    ov = (wq * wq).mul_add(F32x::load(&va[dx..]), ov);
+                    o = wq.madd::<FUSED>(F32x::load(&im[dx..]), o);
+                    ov = (wq * wq).madd::<FUSED>(F32x::load(&va[dx..]), ov);
                 }
             }
             for l in (0..LANES).filter(|&l| solve[l]) {

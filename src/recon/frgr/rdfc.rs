@@ -32,14 +32,14 @@
 //! in the same order); the exponential is a branch-free polynomial (`fastmath`), which
 //! vectorises where libm's `expf` does not. The row kernels are also compiled for AVX-512 and
 //! for AVX2 + FMA, picked at run time (`multiversion`); the exponential's polynomial, the
-//! accumulations and the squared differences are explicit `mul_add`s (one FMA instruction
-//! there; correctly rounded in software on a CPU without FMA, so the same bits everywhere, as
-//! Rust never fuses a multiply-add on its own). What each of these gained is in
+//! accumulations and the squared differences are `fastmath::madd`s, one FMA instruction in
+//! those two builds (the same bits in both), a multiply and an add in the baseline build for a
+//! CPU without FMA (Rust never fuses them on its own). What each of these gained is in
 //! `docs/benchmarks.md`. The previous implementation is kept in the tests as the reference.
 
 use rayon::prelude::*;
 
-use super::fastmath::{exp_nonpositive, max, min};
+use super::fastmath::{exp_nonpositive, fused, madd, max, min};
 use super::util::{reflect, PaddedRows};
 use crate::error::Result;
 use crate::image::{try_vec, Image};
@@ -174,9 +174,10 @@ fn colour_distance_row(
     let (cq0, cq1, cq2) = (&cq0[..n], &cq1[..n], &cq2[..n]);
     let (vp0, vp1, vp2) = (&vp0[..n], &vp1[..n], &vp2[..n]);
     let (vq0, vq1, vq2) = (&vq0[..n], &vq1[..n], &vq2[..n]);
+    const F: bool = fused!();
     let term = |a: f32, b: f32, va: f32, vb: f32| {
         let diff = a - b;
-        diff.mul_add(diff, -(va + min(va, vb))) / (1e-10 + va + vb)
+        madd::<F>(diff, diff, -(va + min(va, vb))) / (1e-10 + va + vb)
     };
     for i in 0..n {
         let t0 = term(cp0[i], cq0[i], vp0[i], vq0[i]);
@@ -203,17 +204,19 @@ fn feature_distance_row3(
     let n = fd.len();
     let (p0, p1, p2, q0, q1, q2) = (&p0[..n], &p1[..n], &p2[..n], &q0[..n], &q1[..n], &q2[..n]);
     let inv = &inv[..n];
+    const F: bool = fused!();
+    let sq = |d0: f32, d1: f32, d2: f32| madd::<F>(d2, d2, madd::<F>(d1, d1, d0 * d0));
     // Two loops rather than a closure: a closure is not inlined into the multiversioned
     // copies, which then do not vectorise.
     if fresh {
         for i in 0..n {
             let (d0, d1, d2) = (p0[i] - q0[i], p1[i] - q1[i], p2[i] - q2[i]);
-            fd[i] = max(d2.mul_add(d2, d1.mul_add(d1, d0 * d0)) * inv[i], 0.0);
+            fd[i] = max(sq(d0, d1, d2) * inv[i], 0.0);
         }
     } else {
         for i in 0..n {
             let (d0, d1, d2) = (p0[i] - q0[i], p1[i] - q1[i], p2[i] - q2[i]);
-            fd[i] = max(d2.mul_add(d2, d1.mul_add(d1, d0 * d0)) * inv[i], fd[i]);
+            fd[i] = max(sq(d0, d1, d2) * inv[i], fd[i]);
         }
     }
 }
@@ -244,6 +247,7 @@ fn weigh_rows<const P: usize>(
     n1: &mut [f32],
     n2: &mut [f32],
 ) {
+    const F: bool = fused!();
     let n = den.len();
     let patch = inp.map(|o| &o.patch[..n]);
     let fd = inp.map(|o| &o.fd[..n]);
@@ -257,12 +261,12 @@ fn weigh_rows<const P: usize>(
         let (mut s, mut m) = (den[i], maxw[i]);
         let (mut a0, mut a1, mut a2) = (n0[i], n1[i], n2[i]);
         for o in 0..P {
-            let wgt = exp_nonpositive(-max(patch[o][i] * scale[o], fd[o][i]));
+            let wgt = exp_nonpositive::<F>(-max(patch[o][i] * scale[o], fd[o][i]));
             s += wgt;
             m = max(m, wgt);
-            a0 = wgt.mul_add(d0[o][i], a0);
-            a1 = wgt.mul_add(d1[o][i], a1);
-            a2 = wgt.mul_add(d2[o][i], a2);
+            a0 = madd::<F>(wgt, d0[o][i], a0);
+            a1 = madd::<F>(wgt, d1[o][i], a1);
+            a2 = madd::<F>(wgt, d2[o][i], a2);
         }
         (den[i], maxw[i]) = (s, m);
         (n0[i], n1[i], n2[i]) = (a0, a1, a2);

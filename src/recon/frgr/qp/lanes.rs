@@ -93,10 +93,13 @@ impl F32x {
         r
     }
 
-    /// `self * a + b` per lane with one rounding (`f32::mul_add`: an FMA instruction where the
-    /// CPU has one, the same bits in software where not).
+    /// `self * a + b` per lane, with one rounding when `FUSED` (an FMA instruction; pass
+    /// `fastmath::fused!()`), else two (see `fastmath::madd`).
     #[inline(always)]
-    pub fn mul_add(self, a: F32x, b: F32x) -> F32x {
+    pub fn madd<const FUSED: bool>(self, a: F32x, b: F32x) -> F32x {
+        if !FUSED {
+            return self * a + b;
+        }
         let (x, a, b) = (self.0, a.0, b.0);
         F32x([
             x[0].mul_add(a[0], b[0]),

@@ -42,7 +42,7 @@ impl<const K: usize> Simplex<'_, K> {
     /// tiny step, is masked out of the updates; no lane's bits depend on another's.
     #[cfg(test)]
     pub fn solve(&self, w: &mut [F32x], active: Mask, max_iter: usize) -> [u32; LANES] {
-        self.solve_from(self.start(w), w, active, max_iter)
+        self.solve_from::<true>(self.start(w), w, active, max_iter)
     }
 
     /// The O(K n) start of [`Simplex::solve`] from `w` (the filter gathers it while building
@@ -79,7 +79,7 @@ impl<const K: usize> Simplex<'_, K> {
 
     /// [`Simplex::solve`] from its start (which must be `self.start(w)`, bit for bit).
     #[inline(always)]
-    pub fn solve_from(
+    pub fn solve_from<const FUSED: bool>(
         &self,
         start: Start<K>,
         w: &mut [F32x],
@@ -119,10 +119,10 @@ impl<const K: usize> Simplex<'_, K> {
             let (bi, vi) = (&b[i], v[i]);
             let wi = scale * w[i];
             // A `match`, not `unwrap_or_else`: a closure is not inlined into the multiversioned
-            // solver, and compiled for the baseline CPU its `mul_add`s are calls.
+            // solver, and compiled for the baseline CPU (where `madd` would fuse in software).
             let qw = match ahead.take() {
                 Some(qw) => qw,
-                None => vi * wi + dot3(bi, &s),
+                None => vi * wi + dot3::<K, FUSED>(bi, &s),
             };
             let wqw = ss + svw;
             let dqw = qw - wqw;
@@ -163,9 +163,9 @@ impl<const K: usize> Simplex<'_, K> {
             let j = next(i);
             let (bj, wj) = (&b[j], scale * w[j]);
             for (sr, &br) in s.iter_mut().zip(bi) {
-                *sr = t_s.mul_add(br, keep_s * *sr);
+                *sr = t_s.madd::<FUSED>(br, keep_s * *sr);
             }
-            ahead = Some(v[j] * wj + dot3(bj, &s));
+            ahead = Some(v[j] * wj + dot3::<K, FUSED>(bj, &s));
         }
         for wq in &mut w[..n] {
             *wq = *wq * scale;
@@ -229,10 +229,10 @@ fn norm2<const K: usize>(s: &[F32x; K]) -> F32x {
 /// `b . s` in three partial sums (rows `r mod 3`: every `K` is a multiple of 3), so that the
 /// solver's critical path is a third as long as one chain of `K` additions.
 #[inline(always)]
-fn dot3<const K: usize>(b: &[F32x; K], s: &[F32x; K]) -> F32x {
+fn dot3<const K: usize, const FUSED: bool>(b: &[F32x; K], s: &[F32x; K]) -> F32x {
     let mut acc = [F32x::splat(0.0); 3];
     for (r, (&br, &sr)) in b.iter().zip(s).enumerate() {
-        acc[r % 3] = br.mul_add(sr, acc[r % 3]);
+        acc[r % 3] = br.madd::<FUSED>(sr, acc[r % 3]);
     }
     acc[0] + acc[1] + acc[2]
 }
