@@ -36,9 +36,9 @@
 //! column norms and projections are gathered while the rows are built; windows are read from
 //! planes padded with the reflect-101 border band by band ([`BAND`] rows plus the halo, so the
 //! copies stay small), with no `reflect` in the inner loops; the scratch is per band, not per
-//! pixel. Bands run in parallel and no result depends on the thread count or the CPU. A band's
-//! whole solve is compiled for AVX-512 and AVX2 as well and picked at run time (`multiversion`).
-//! The sums of products (`b . s`, the update of `s`, the rows' norms and costs, the output's
+//! pixel. Bands run in parallel and no result depends on the thread count (nor on the CPU, but
+//! for FMA: below). A band's whole solve is compiled for AVX-512 and AVX2 as well and picked at
+//! run time (`multiversion`). The sums of products (`b . s`, the update of `s`, the rows' norms and costs, the output's
 //! weighted sums) are `madd`s: one FMA instruction in those builds, a multiply and an add in
 //! the baseline one (a CPU without FMA), so the result is the same on every CPU with FMA, and on
 //! one without it is the unfused arithmetic (measured: the forty-third session's bits).
