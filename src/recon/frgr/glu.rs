@@ -169,12 +169,17 @@ impl Glu {
                     if !todo.contains(&true) {
                         continue;
                     }
-                    // u_k = t - J[cand k], lane-innermost.
+                    // u_k = t - J[cand k], lane-innermost (the targets `t` read once).
+                    let mut t = [[0.0f64; LANES]; 9];
+                    for (c, tc) in t[..nc].iter_mut().enumerate() {
+                        for (l, v) in tc.iter_mut().enumerate() {
+                            *v = f64::from(fs[c * n + y * w + (x0 + l).min(w - 1)]);
+                        }
+                    }
                     for (k, uk) in u.iter_mut().enumerate() {
-                        for (c, uc) in uk[..nc].iter_mut().enumerate() {
+                        for ((c, uc), tc) in uk[..nc].iter_mut().enumerate().zip(&t) {
                             for (l, v) in uc.iter_mut().enumerate() {
-                                let p = y * w + (x0 + l).min(w - 1);
-                                *v = f64::from(fs[c * n + p]) - f64::from(cs[c * cn + cand[l][k]]);
+                                *v = tc[l] - f64::from(cs[c * cn + cand[l][k]]);
                             }
                         }
                     }
