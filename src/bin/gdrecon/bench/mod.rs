@@ -13,6 +13,7 @@
 
 mod aggregate;
 mod baseline;
+mod cpu;
 mod frames;
 mod measure;
 mod plot;
@@ -126,6 +127,7 @@ pub fn run(args: BenchArgs) -> gdrecon::Result<()> {
         runs: args.runs,
     };
     let load_before = summary::load_average();
+    say!("{}, {} worker threads", cpu::describe(), context.threads());
     print_header();
     let mut rows = time_all(
         &context,

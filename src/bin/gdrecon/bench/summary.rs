@@ -3,6 +3,7 @@
 use std::fmt::Write as _;
 
 use super::aggregate::Panel;
+use super::cpu;
 use super::measure::Row;
 
 /// What the summary says about how it was made.
@@ -48,7 +49,7 @@ fn intro(out: &mut String, h: &Header) {
          resident high-water mark since the variant started (it includes every frame loaded). \
          Load average (1, 5, 15 min) before: {}, after: {}.\n",
         utc_now(),
-        cpu_model(),
+        cpu::describe(),
         h.threads,
         h.warmup,
         h.runs,
@@ -276,19 +277,6 @@ pub fn load_average() -> Option<String> {
     let text = std::fs::read_to_string("/proc/loadavg").ok()?;
     let fields: Vec<&str> = text.split_whitespace().take(3).collect();
     (fields.len() == 3).then(|| fields.join(" "))
-}
-
-/// The CPU's model name (Linux), or `unknown CPU`.
-fn cpu_model() -> String {
-    std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|t| {
-            t.lines()
-                .find(|l| l.starts_with("model name"))
-                .and_then(|l| l.split_once(':'))
-                .map(|(_, v)| v.trim().to_owned())
-        })
-        .unwrap_or_else(|| "unknown CPU".to_owned())
 }
 
 /// The current UTC date and time, `YYYY-MM-DD HH:MM`.

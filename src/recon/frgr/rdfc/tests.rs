@@ -426,3 +426,96 @@ fn box_mean_of_a_constant_is_the_constant() {
     box_mean(&src, 7, 5, 3, &mut tmp, &mut dst).unwrap();
     assert!(dst.iter().all(|&v| (v - 2.0).abs() < 1e-6));
 }
+
+/// [`Feature::new`]'s normaliser pixel by pixel, with `reflect` at every read (as it was
+/// computed before it went row by row: the oracle of the row form).
+fn feature_norm_per_pixel(img: &Image) -> Vec<f32> {
+    let (w, h) = img.size();
+    let ch = img.channels();
+    let n = w * h;
+    let s = img.as_slice();
+    (0..n)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let mut g2 = 0.0;
+            for c in 0..ch {
+                let at = |xx: isize, yy: isize| s[c * n + reflect(yy, h) * w + reflect(xx, w)];
+                let gx = 0.5 * (at(x as isize + 1, y as isize) - at(x as isize - 1, y as isize));
+                let gy = 0.5 * (at(x as isize, y as isize + 1) - at(x as isize, y as isize - 1));
+                g2 += gx * gx + gy * gy;
+            }
+            KF * KF * (g2 / ch as f32).max(1e-3)
+        })
+        .collect()
+}
+
+#[test]
+fn feature_norms_row_by_row_equal_the_per_pixel_form_bit_for_bit() {
+    // Sizes with one, two and three columns or rows hit every border case of the row form.
+    for (w, h) in [
+        (1, 1),
+        (1, 5),
+        (5, 1),
+        (2, 2),
+        (3, 2),
+        (2, 3),
+        (37, 23),
+        (300, 17),
+    ] {
+        let (colour, _, albedo, normal) = synthetic(w, h);
+        let one = Image::from_fn(1, w, h, |(_, x, y)| ((x * 7 + y * 13) % 11) as f32 * 0.3);
+        for img in [&colour, &albedo, &normal, &one] {
+            let fast = Feature::new(img).unwrap().norm;
+            let oracle = feature_norm_per_pixel(img);
+            let same = fast
+                .iter()
+                .zip(&oracle)
+                .all(|(a, b)| a.to_bits() == b.to_bits());
+            assert!(same, "{w} x {h}, {} channel(s)", img.channels());
+        }
+    }
+}
+
+/// [`box_mean`] as it was before its vertical pass went row by row: per pixel, the rows'
+/// sums in the order of `d` (the oracle of the row form, which must equal it bit for bit).
+fn box_mean_per_pixel(src: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
+    let area = ((2 * r + 1) * (2 * r + 1)) as f32;
+    let mut tmp = vec![0.0f32; w * h];
+    for (y, row) in tmp.chunks_mut(w).enumerate() {
+        let s = &src[y * w..(y + 1) * w];
+        let mut acc: f32 = (-(r as isize)..=r as isize).map(|d| s[reflect(d, w)]).sum();
+        for x in 0..w {
+            row[x] = acc;
+            acc +=
+                s[reflect(x as isize + r as isize + 1, w)] - s[reflect(x as isize - r as isize, w)];
+        }
+    }
+    (0..w * h)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let mut acc = 0.0;
+            for d in -(r as isize)..=r as isize {
+                acc += tmp[reflect(y as isize + d, h) * w + x];
+            }
+            acc / area
+        })
+        .collect()
+}
+
+#[test]
+fn box_mean_equals_the_per_pixel_form_bit_for_bit() {
+    for (w, h) in [(1, 1), (1, 6), (6, 1), (3, 4), (41, 19)] {
+        let (colour, ..) = synthetic(w, h);
+        let src = &colour.as_slice()[..w * h];
+        for r in [1, 3] {
+            let (mut tmp, mut dst) = (Vec::new(), vec![0.0; w * h]);
+            box_mean(src, w, h, r, &mut tmp, &mut dst).unwrap();
+            let oracle = box_mean_per_pixel(src, w, h, r);
+            let same = dst
+                .iter()
+                .zip(&oracle)
+                .all(|(a, b)| a.to_bits() == b.to_bits());
+            assert!(same, "{w} x {h}, radius {r}");
+        }
+    }
+}

@@ -1,0 +1,75 @@
+//! The CPU a benchmark ran on, named well enough to compare runs: the model name alone is not
+//! (two machines both called "AMD EPYC" here differed 2.6x in GradNet's time against OIDN: one
+//! had AVX-512 VNNI, the other AVX2 only), so the vector instruction sets that the kernels,
+//! ONNX Runtime and OIDN pick at run time are named beside it.
+
+/// `MODEL (SIMD)`, e.g. `AMD EPYC (AVX-512 VNNI BF16)` or `Intel Xeon (AVX2 FMA)`.
+pub fn describe() -> String {
+    format!("{} ({})", model(), simd())
+}
+
+/// The CPU's model name (Linux), or `unknown CPU`.
+fn model() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|t| {
+            t.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split_once(':'))
+                .map(|(_, v)| v.trim().to_owned())
+        })
+        .unwrap_or_else(|| "unknown CPU".to_owned())
+}
+
+/// The widest vector tier the multiversioned kernels run (`x86_64+avx512f+avx512bw+avx512vl`,
+/// `x86_64+avx2+fma`, or the baseline), then the extensions ONNX Runtime's int8 and bf16 paths
+/// use (VNNI: GradNet's int8 graph is ~3x faster with it than without).
+fn simd() -> String {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let mut parts: Vec<&str> = Vec::new();
+        let avx512 = std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512bw")
+            && std::arch::is_x86_feature_detected!("avx512vl");
+        if avx512 {
+            parts.push("AVX-512");
+            if std::arch::is_x86_feature_detected!("avx512vnni") {
+                parts.push("VNNI");
+            }
+            if std::arch::is_x86_feature_detected!("avx512bf16") {
+                parts.push("BF16");
+            }
+        } else if std::arch::is_x86_feature_detected!("avx2")
+            && std::arch::is_x86_feature_detected!("fma")
+        {
+            parts.push("AVX2 FMA");
+            if std::arch::is_x86_feature_detected!("avxvnni") {
+                parts.push("AVX-VNNI");
+            }
+        } else {
+            parts.push("no AVX2: baseline kernels");
+        }
+        parts.join(" ")
+    }
+    #[cfg(target_arch = "aarch64")]
+    {
+        "NEON".to_owned()
+    }
+    #[cfg(not(any(target_arch = "x86_64", target_arch = "aarch64")))]
+    {
+        "baseline kernels".to_owned()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_the_model_and_a_vector_tier() {
+        let d = describe();
+        let (model, simd) = d.split_once(" (").expect("MODEL (SIMD)");
+        assert!(!model.is_empty(), "{d}");
+        assert!(simd.ends_with(')') && simd.len() > 1, "{d}");
+    }
+}
