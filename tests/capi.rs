@@ -239,7 +239,7 @@ fn filter_parameters_reach_the_method() {
     let bufs = packed_inputs(&frame);
     let ctx = context();
     let mut config = gdrecon::recon::FrgrConfig::default();
-    config.radius = 3;
+    config.radius = 4;
     config.levels = 1;
     config.enhance_iterations = 0;
     config.guide = gdrecon::recon::FrgrGuide::Colour;
@@ -253,7 +253,7 @@ fn filter_parameters_reach_the_method() {
             c"spp".as_ptr(),
             frame.spp().unwrap(),
         ));
-        ok(gdr_filter_set_int(f, c"radius".as_ptr(), 3));
+        ok(gdr_filter_set_int(f, c"radius".as_ptr(), 4));
         ok(gdr_filter_set_int(f, c"levels".as_ptr(), 1));
         ok(gdr_filter_set_int(f, c"enhance_iterations".as_ptr(), 0));
         let msg = fails(
@@ -278,7 +278,7 @@ fn filter_parameters_reach_the_method() {
             &mut e,
         ));
         ok(gdr_filter_get_int(f, c"guide".as_ptr(), &mut g));
-        assert_eq!((r, l, e, g), (3, 1, 0, GDR_FRGR_GUIDE_NONE));
+        assert_eq!((r, l, e, g), (4, 1, 0, GDR_FRGR_GUIDE_NONE));
         set_packed(f, &bufs);
         run(f, &mut out);
         gdr_filter_release(&mut { f });

@@ -62,7 +62,8 @@ choices!(FrgrGuide {
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[non_exhaustive]
 pub struct FrgrConfig {
-    /// Filter window radius.
+    /// Filter window radius; 0 (the default): by the guide, [`FrgrConfig::window_radius`]
+    /// (the release has 4, 9 x 9 windows).
     pub radius: usize,
     /// Resolution levels, each 2x coarser, linked by guided linear upsampling.
     pub levels: usize,
@@ -92,7 +93,7 @@ pub struct FrgrConfig {
 impl Default for FrgrConfig {
     fn default() -> Self {
         FrgrConfig {
-            radius: 4,
+            radius: 0,
             levels: 2,
             enhance_iterations: 250,
             guide: FrgrGuide::Rdfc,
@@ -108,10 +109,22 @@ impl Default for FrgrConfig {
 }
 
 impl FrgrConfig {
+    /// The filter window radius used: `radius`, or when it is 0, 3 (7 x 7 windows) with a
+    /// guide of our own (RDFC, L1, none) and the release's 4 (9 x 9) with the prior's, each the
+    /// better on validation and on test (`docs/benchmarks.md`, "Forty-sixth session").
+    pub fn window_radius(&self) -> usize {
+        match (self.radius, self.guide) {
+            (0, FrgrGuide::Prior) => REFERENCE_RADIUS,
+            (0, _) => RADIUS,
+            (r, _) => r,
+        }
+    }
+
     /// The release's settings, literally: the reference mode (1000 enhancement iterations, no
     /// noise band), kept for comparison with the default fast mode.
     pub fn reference() -> Self {
         FrgrConfig {
+            radius: REFERENCE_RADIUS,
             enhance_iterations: REFERENCE_ENHANCE_ITERATIONS,
             noise_band: 0.0,
             prefilter_below: PREFILTER_ALWAYS,
@@ -124,9 +137,12 @@ impl Params for FrgrConfig {
     const TABLE: &'static [Param<Self>] = &[
         Param::int(
             "radius",
-            3,
+            0,
             4,
-            "Filter window radius: 3 or 4 (7 x 7 or 9 x 9 windows), 4 as the release",
+            "Filter window radius (4: 9 x 9 windows, as the release); 0: by the guide, 3 with \
+             RDFC, L1 or none (validation: relMSE -2.2 / -2.3 / -1.6 % at 4 / 16 / 64 spp \
+             against 4 with RDFC, the QP 1.6x faster), 4 with the prior (3 there: +1.0 / +0.5 / \
+             +0.3 %); 1 and 2 are faster and less accurate",
             |c| c.radius as i64,
             |c, v| c.radius = v as usize,
         ),
@@ -209,6 +225,7 @@ impl Register for FrgrConfig {
     const SWEEP: &'static [&'static str] = &[
         "",
         "reference",
+        "radius=4",
         "levels=1",
         "guide=l1",
         "enhance_iterations=0",
@@ -264,6 +281,18 @@ const FRGR_BYTES_PER_PIXEL: u64 = 320;
 
 /// The release's gradient-enhancement iterations.
 const REFERENCE_ENHANCE_ITERATIONS: u32 = 1000;
+
+/// The release's filter window radius (9 x 9 windows: 81 weights a pixel).
+const REFERENCE_RADIUS: usize = 4;
+
+/// The filter window radius with a guide of our own: 7 x 7 windows (49 weights a pixel),
+/// chosen on validation in the forty-sixth session against the release's 4 with the RDFC
+/// guide: relMSE -2.2 / -2.3 / -1.6 % at 4 / 16 / 64 spp (geometric means; 20 of 24 frames
+/// better, the worst `dusk` 4 spp +4.5 %), and the QP 1.6x faster (its cost goes with the
+/// square of the window's pixels, as its sweeps' lengths do). On test, read once after the
+/// choice: -0.5 / -0.5 / -1.4 %, no frame worse by 1 %. With the prior's guide 4 stays: 3 was
+/// +1.0 / +0.5 / +0.3 % on validation (+2.1 / +0.9 / +0.3 % on test, `lamps` 4 spp +11.5 %).
+const RADIUS: usize = 3;
 
 /// Default `prefilter_below`: the feature prefilter runs below 16 spp only. Its noise bound
 /// (`prefilter.rs`: the 3 x 3 range over spp) mistakes a curved surface or an edge for noise
@@ -533,7 +562,7 @@ impl Frgr {
             normal: inp.normal.as_deref(),
             up: up.as_ref().map(|(u, v)| (u, v)),
             spp,
-            radius: self.cfg.radius,
+            radius: self.cfg.window_radius(),
             converged: inp.converged.as_deref(),
             dropped: [false; 5],
         };
