@@ -150,15 +150,9 @@ fn box_mean(
         *tmp = try_vec(w * h, 0.0)?;
     }
     let tmp = &mut tmp[..w * h];
-    tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        let s = &src[y * w..(y + 1) * w];
-        let mut acc: f32 = (-(r as isize)..=r as isize).map(|d| s[reflect(d, w)]).sum();
-        for x in 0..w {
-            row[x] = acc;
-            acc +=
-                s[reflect(x as isize + r as isize + 1, w)] - s[reflect(x as isize - r as isize, w)];
-        }
-    });
+    tmp.par_chunks_mut(w)
+        .enumerate()
+        .for_each(|(y, row)| box_row(&src[y * w..(y + 1) * w], r, row));
     let tmp = &*tmp;
     // Row after row into the output row (from 0.0, in the order of `d`: the sums of a
     // pixel-by-pixel loop, which would not vectorise).
@@ -175,6 +169,16 @@ fn box_mean(
         }
     });
     Ok(())
+}
+
+/// The running box sums of radius `r` along one row `s` (reflect-101) into `out`.
+fn box_row(s: &[f32], r: usize, out: &mut [f32]) {
+    let w = s.len();
+    let mut acc: f32 = (-(r as isize)..=r as isize).map(|d| s[reflect(d, w)]).sum();
+    for (x, out) in out.iter_mut().enumerate() {
+        *out = acc;
+        acc += s[reflect(x as isize + r as isize + 1, w)] - s[reflect(x as isize - r as isize, w)];
+    }
 }
 
 /// Side lengths (columns, rows) of the tiles [`nlm_candidates`] works on: a tile's inputs

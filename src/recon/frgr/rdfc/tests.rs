@@ -476,19 +476,14 @@ fn feature_norms_row_by_row_equal_the_per_pixel_form_bit_for_bit() {
     }
 }
 
-/// [`box_mean`] as it was before its vertical pass went row by row: per pixel, the rows'
-/// sums in the order of `d` (the oracle of the row form, which must equal it bit for bit).
+/// [`box_mean`] as it was before its vertical pass went row by row (the horizontal pass,
+/// [`box_row`], is shared): per pixel, the rows' sums in the order of `d` (the oracle of the
+/// row form, which must equal it bit for bit).
 fn box_mean_per_pixel(src: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
     let area = ((2 * r + 1) * (2 * r + 1)) as f32;
     let mut tmp = vec![0.0f32; w * h];
     for (y, row) in tmp.chunks_mut(w).enumerate() {
-        let s = &src[y * w..(y + 1) * w];
-        let mut acc: f32 = (-(r as isize)..=r as isize).map(|d| s[reflect(d, w)]).sum();
-        for x in 0..w {
-            row[x] = acc;
-            acc +=
-                s[reflect(x as isize + r as isize + 1, w)] - s[reflect(x as isize - r as isize, w)];
-        }
+        box_row(&src[y * w..(y + 1) * w], r, row);
     }
     (0..w * h)
         .map(|i| {
