@@ -98,13 +98,11 @@ impl<'a> Feature<'a> {
                     let gy = 0.5 * (lower - upper);
                     *g2 += gx * gx + gy * gy;
                 };
+                // The two end columns (one when the row has one pixel) read across the border.
                 let at = |x: isize| row[reflect(x, w)];
-                for x in [0, w - 1] {
+                for x in std::iter::once(0).chain((w > 1).then_some(w - 1)) {
                     let xi = x as isize;
                     add(&mut g2[x], at(xi + 1), at(xi - 1), below[x], above[x]);
-                    if w == 1 {
-                        break;
-                    }
                 }
                 if w > 2 {
                     let (g2, right, left) = (&mut g2[1..w - 1], &row[2..], &row[..w - 2]);
