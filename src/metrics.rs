@@ -68,13 +68,7 @@ pub fn compare(image: &Image, reference: &Image) -> Result<Metrics> {
         .as_slice()
         .par_chunks(chunk)
         .zip(reference.as_slice().par_chunks(chunk))
-        .map(|(a, r)| {
-            a.iter().zip(r).fold((0.0, 0.0), |(rel, sq), (&a, &r)| {
-                let (a, r) = (f64::from(a), f64::from(r));
-                let d2 = (a - r) * (a - r);
-                (rel + d2 / (r * r + 0.01), sq + d2)
-            })
-        })
+        .map(|(a, r)| chunk_sums(a, r))
         .collect();
     let n = image.as_slice().len() as f64;
     let (rel, sq) = partials
@@ -92,9 +86,58 @@ pub fn compare(image: &Image, reference: &Image) -> Result<Metrics> {
     })
 }
 
+/// The sums of `(a - r)^2 / (r^2 + 0.01)` and `(a - r)^2` over one chunk, in 8 interleaved
+/// lanes (so that they vectorise: one running sum is a chain of dependent additions, and ran
+/// the CLI's two comparisons of a 720p frame in 12 ms), the lanes then added in order.
+fn chunk_sums(a: &[f32], r: &[f32]) -> (f64, f64) {
+    const L: usize = 8;
+    let (mut rel, mut sq) = ([0.0f64; L], [0.0f64; L]);
+    let mut add = |k: usize, a: f32, r: f32| {
+        let (a, r) = (f64::from(a), f64::from(r));
+        let d2 = (a - r) * (a - r);
+        rel[k] += d2 / (r * r + 0.01);
+        sq[k] += d2;
+    };
+    let (ab, rb) = (a.chunks_exact(L), r.chunks_exact(L));
+    let (at, rt) = (ab.remainder(), rb.remainder());
+    for (a8, r8) in ab.zip(rb) {
+        for k in 0..L {
+            add(k, a8[k], r8[k]);
+        }
+    }
+    for (k, (&a, &r)) in at.iter().zip(rt).enumerate() {
+        add(k, a, r);
+    }
+    (rel.iter().sum(), sq.iter().sum())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The lane sums against one running f64 sum per term, on lengths around the lane width.
+    #[test]
+    fn lane_sums_match_a_running_sum() {
+        for len in [0, 1, 7, 8, 9, 1023, 4096 + 5] {
+            let a: Vec<f32> = (0..len).map(|i| ((i * 37 % 101) as f32) * 0.03).collect();
+            let r: Vec<f32> = (0..len).map(|i| ((i * 11 % 89) as f32) * 0.05).collect();
+            let (mut rel, mut sq) = (0.0f64, 0.0f64);
+            for (&a, &r) in a.iter().zip(&r) {
+                let (a, r) = (f64::from(a), f64::from(r));
+                rel += (a - r) * (a - r) / (r * r + 0.01);
+                sq += (a - r) * (a - r);
+            }
+            let (got_rel, got_sq) = chunk_sums(&a, &r);
+            assert!(
+                (got_rel - rel).abs() <= 1e-12 * rel.max(1.0),
+                "{len}: {got_rel} {rel}"
+            );
+            assert!(
+                (got_sq - sq).abs() <= 1e-12 * sq.max(1.0),
+                "{len}: {got_sq} {sq}"
+            );
+        }
+    }
 
     #[test]
     fn hand_computed_values() {

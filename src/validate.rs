@@ -164,20 +164,24 @@ pub(crate) fn sanitize_layer(
         .as_mut_slice()
         .par_chunks_mut(1 << 14)
         .map(|chunk| {
-            let (mut nf, mut neg, mut imp) = (0u64, 0u64, 0u64);
+            // Branch-free, so that it vectorises (a branch per value ran this pass at a fifth
+            // of memory speed: 13 % of the CLI's `l2` run at 720p); each value counts once, as
+            // non-finite, else negative, else implausible. Chunks are 2^14 values: u32 counts.
+            let (mut nf, mut neg, mut imp) = (0u32, 0u32, 0u32);
             for v in chunk {
-                if !v.is_finite() {
-                    nf += 1;
-                    *v = 0.0;
-                } else if no_negatives && *v < 0.0 {
-                    neg += 1;
-                    *v = 0.0;
-                } else if v.abs() > bound {
-                    imp += 1;
-                    *v = 0.0;
-                }
+                let finite = v.is_finite();
+                let negative = finite & no_negatives & (*v < 0.0);
+                let implausible = finite & !negative & (v.abs() > bound);
+                nf += u32::from(!finite);
+                neg += u32::from(negative);
+                imp += u32::from(implausible);
+                *v = if finite & !negative & !implausible {
+                    *v
+                } else {
+                    0.0
+                };
             }
-            (nf, neg, imp)
+            (u64::from(nf), u64::from(neg), u64::from(imp))
         })
         .reduce(|| (0, 0, 0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2));
     Ok(LayerCounts {
@@ -185,4 +189,65 @@ pub(crate) fn sanitize_layer(
         negative,
         implausible,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The branch-free pass against the rule written as branches, value by value: each bad
+    /// value counted once (non-finite before negative before implausible) and set to 0, every
+    /// other value kept bit for bit (-0.0 included), across chunk boundaries.
+    #[test]
+    fn replace_counts_each_value_once_and_keeps_the_rest() {
+        let specials = [
+            f32::NAN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            -1.0,
+            -0.0,
+            0.0,
+            5.0,
+            -5.0,
+            2.5e3,
+            -2.5e3,
+            f32::MIN_POSITIVE,
+        ];
+        let bound = 1e3;
+        for layer in [Layer::Color, Layer::Dx] {
+            // Three planes of 3 x 7000 values: more than one 2^14 chunk, a ragged last one.
+            let mut img = Image::from_fn(3, 7000, 3, |(c, x, y)| {
+                specials[(c * 31 + x * 7 + y * 3) % specials.len()]
+            });
+            let before = img.as_slice().to_vec();
+            let got = sanitize_layer(layer, &mut img, Policy::Replace, Some(bound)).unwrap();
+            let mut want = LayerCounts::default();
+            for (&v, &out) in before.iter().zip(img.as_slice()) {
+                let replaced = if !v.is_finite() {
+                    want.non_finite += 1;
+                    true
+                } else if layer.must_be_nonnegative() && v < 0.0 {
+                    want.negative += 1;
+                    true
+                } else if v.abs() > bound {
+                    want.implausible += 1;
+                    true
+                } else {
+                    false
+                };
+                let expected = if replaced { 0.0 } else { v };
+                assert_eq!(
+                    out.to_bits(),
+                    expected.to_bits(),
+                    "{layer}: {v} became {out}"
+                );
+            }
+            assert_eq!(
+                (got.non_finite, got.negative, got.implausible),
+                (want.non_finite, want.negative, want.implausible),
+                "{layer}"
+            );
+            assert!(want.non_finite > 0 && want.implausible > 0);
+        }
+    }
 }

@@ -295,8 +295,13 @@ fn reconstruct(args: ReconstructArgs) -> gdrecon::Result<()> {
     );
     say!("{}", report.to_string().trim_end());
     if let Some(reference) = frame.reference() {
-        let base = metrics::compare(frame.color(), reference)?;
-        let out = metrics::compare(&image, reference)?;
+        // On the context's threads: outside it rayon would start its global pool for them.
+        let (base, out) = context.install(|| {
+            Ok::<_, gdrecon::Error>((
+                metrics::compare(frame.color(), reference)?,
+                metrics::compare(&image, reference)?,
+            ))
+        })?;
         say!("base     {base}");
         say!("{:<8} {out}", config.method().name());
     }
