@@ -33,7 +33,11 @@ impl Image {
             .checked_mul(width)
             .and_then(|n| n.checked_mul(height))
             .ok_or_else(|| too_large(channels, width, height))?;
-        let data = try_zeros_vec(len).map_err(|_| too_large(channels, width, height))?;
+        // A zeroed allocation, not a fill: large ones get fresh pages from the system, already
+        // zero, which the threads that first write them fault in (filled here, serially, a
+        // 22-channel 720p bundle's 81 MB of planes cost the CLI's read a fifth of its time).
+        let data = bytemuck::allocation::try_zeroed_vec(len)
+            .map_err(|()| too_large(channels, width, height))?;
         Ok(Image {
             planes: Array3::from_shape_vec((channels, height, width), data)
                 .expect("the length is the shape's"),
@@ -258,19 +262,6 @@ fn too_large(channels: usize, width: usize, height: usize) -> Error {
     ))
 }
 
-/// `len` zeros from a zeroed allocation, or [`Error::OutOfMemory`]. Unlike [`try_vec`] nothing
-/// is written here: a large allocation gets fresh pages from the system, already zero, and the
-/// threads that first write them fault them in (a 22-channel 720p bundle's planes are 81 MB:
-/// filled here, serially, they cost the CLI's read a fifth of its time).
-pub(crate) fn try_zeros_vec(len: usize) -> Result<Vec<f32>> {
-    bytemuck::allocation::try_zeroed_vec(len).map_err(|()| {
-        Error::OutOfMemory(format!(
-            "cannot allocate {} MiB",
-            (len as u128 * std::mem::size_of::<f32>() as u128) >> 20
-        ))
-    })
-}
-
 /// `len` copies of `value`, or [`Error::OutOfMemory`] when the allocation fails instead of
 /// aborting the process.
 pub(crate) fn try_vec<T: Clone>(len: usize, value: T) -> Result<Vec<T>> {
@@ -292,11 +283,11 @@ mod tests {
     #[test]
     fn zeroed_planes_are_zero_and_an_impossible_size_is_an_error() {
         // Large enough for the allocator to map fresh pages, small enough for any machine.
-        let v = try_zeros_vec(3 << 20).unwrap();
-        assert!(v.len() == 3 << 20 && v.iter().all(|&x| x.to_bits() == 0));
-        assert!(try_zeros_vec(0).unwrap().is_empty());
+        let v = Image::try_zeros(3, 1 << 10, 1 << 10).unwrap();
+        assert!(v.as_slice().len() == 3 << 20 && v.as_slice().iter().all(|&x| x.to_bits() == 0));
+        assert!(Image::try_zeros(3, 0, 5).unwrap().as_slice().is_empty());
         assert!(matches!(
-            try_zeros_vec(usize::MAX / 2),
+            Image::try_zeros(1, usize::MAX / 8, 1),
             Err(Error::OutOfMemory(_))
         ));
         assert!(matches!(

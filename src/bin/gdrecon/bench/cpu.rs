@@ -9,28 +9,16 @@ pub fn describe() -> String {
     format!("{} ({})", model(), simd())
 }
 
-/// Whether the first `flags` line of /proc/cpuinfo (Linux) lists `flag`.
-#[cfg(target_arch = "x86_64")]
-fn cpuinfo_flag(flag: &str) -> bool {
-    std::fs::read_to_string("/proc/cpuinfo").is_ok_and(|t| {
-        t.lines()
-            .find(|l| l.starts_with("flags"))
-            .and_then(|l| l.split_once(':'))
-            .is_some_and(|(_, v)| v.split_whitespace().any(|f| f == flag))
-    })
+/// The value of the first line of /proc/cpuinfo (Linux) that starts with `key`.
+fn cpuinfo(key: &str) -> Option<String> {
+    let text = std::fs::read_to_string("/proc/cpuinfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with(key))?;
+    Some(line.split_once(':')?.1.trim().to_owned())
 }
 
 /// The CPU's model name (Linux), or `unknown CPU`.
 fn model() -> String {
-    std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|t| {
-            t.lines()
-                .find(|l| l.starts_with("model name"))
-                .and_then(|l| l.split_once(':'))
-                .map(|(_, v)| v.trim().to_owned())
-        })
-        .unwrap_or_else(|| "unknown CPU".to_owned())
+    cpuinfo("model name").unwrap_or_else(|| "unknown CPU".to_owned())
 }
 
 /// The widest vector tier the multiversioned kernels run (`x86_64+avx512f+avx512bw+avx512vl`,
@@ -51,11 +39,11 @@ fn simd() -> String {
             if std::arch::is_x86_feature_detected!("avx512bf16") {
                 parts.push("BF16");
             }
-            // Intel's matrix tiles (Sapphire Rapids on): ONNX Runtime's int8 GEMMs can use
-            // them, and OIDN ran relatively faster on such a Xeon (0.70 s at 720p, against
-            // 1.17 s on a Zen 4 EPYC with the rest of this tier).
-            // (`is_x86_feature_detected!("amx-int8")` is unstable: the kernel's flags say it.)
-            if cpuinfo_flag("amx_int8") {
+            // Intel's matrix tiles: ONNX Runtime's int8 GEMMs can use them, and OIDN runs
+            // relatively faster on such a Xeon (docs/benchmarks.md, forty-seventh session).
+            // Read from the kernel's flags: `is_x86_feature_detected!("amx-int8")` is unstable.
+            let flags = cpuinfo("flags").unwrap_or_default();
+            if flags.split_whitespace().any(|f| f == "amx_int8") {
                 parts.push("AMX");
             }
         } else if std::arch::is_x86_feature_detected!("avx2")
