@@ -114,8 +114,12 @@ g++ -std=c++17 "${warn[@]}" -O1 -g $cflags tests/c/test_cpp.cpp -o "$work/test_h
     -Wl,-rpath,"$prefix/lib" && ok "g++ -std=c++17 test_cpp.cpp (include/gdrecon.hpp)"
 gcc -std=c99 "${warn[@]}" -O1 $cflags tests/c/test_capi.c -o "$work/test_static" $static_libs -lm \
     && ok "gcc, static library (pkg-config gdrecon-static)"
-if ldd "$work/test_static" | grep -q libgdrecon; then bad "test_static needs libgdrecon.so"; else ok "test_static: no libgdrecon.so (ldd)"; fi
-if readelf -d "$work/test_c" | grep -q "NEEDED.*libgdrecon.so.0"; then ok "linked against the soname"; else bad "test_c does not need libgdrecon.so.0"; fi
+# Listings are captured before they are searched: `ldd X | grep -q Y` under pipefail fails
+# when grep exits at its match while ldd still writes (SIGPIPE; seen once in 300 runs).
+static_deps=$(ldd "$work/test_static")
+dynamic=$(readelf -d "$work/test_c")
+if grep -q libgdrecon <<<"$static_deps"; then bad "test_static needs libgdrecon.so"; else ok "test_static: no libgdrecon.so (ldd)"; fi
+if grep -q "NEEDED.*libgdrecon.so.0" <<<"$dynamic"; then ok "linked against the soname"; else bad "test_c does not need libgdrecon.so.0"; fi
 
 step "run the C tests"
 counted test_c "$work/test_c" "$work/ref" "$sample"
@@ -181,7 +185,8 @@ readme_outputs=(reconstruct reconstruct_static examples/c/reconstruct examples/c
 if [ ! -s "$readme" ]; then
     bad "README has no block after the run.sh marker"
 elif (env -u PKG_CONFIG_PATH bash -euo pipefail "$readme") >"$work/readme.log" 2>&1 &&
-    ! ldd reconstruct_static | grep -q libgdrecon && ldd reconstruct | grep -q "$work/readme-prefix/lib/libgdrecon.so"; then
+    static_deps=$(ldd reconstruct_static) && deps=$(ldd reconstruct) &&
+    ! grep -q libgdrecon <<<"$static_deps" && grep -q "$work/readme-prefix/lib/libgdrecon.so" <<<"$deps"; then
     ok "README commands ($(grep -c . "$readme") lines; reconstruct uses the installed .so, reconstruct_static none)"
 else
     cat "$readme" "$work/readme.log"
