@@ -338,7 +338,7 @@ gdr_error gdr_filter_retain(gdr_filter *filter);
 // `gdr_filter_cancel`).
 gdr_error gdr_filter_release(gdr_filter **filter);
 
-// Reset every parameter of the filter's method to one of its presets (`"prior"`, `"fast"`, `"published"` for `"l1"`; docs/PARAMETERS.md and `gdrecon params` list them); `"spp"` and `"strict"` are kept.
+// Reset every parameter of the filter's method to one of its presets (`"prior"`, `"fast"`, `"published"` for `"l1"`; `"fast"`, `"reference"` for `"frgr"`; docs/PARAMETERS.md and `gdrecon params` list them); `"spp"` and `"strict"` are kept.
 //
 // An unknown preset is `GDR_ERROR_INVALID_ARGUMENT`, with a message that lists the method's presets.
 gdr_error gdr_filter_set_preset(gdr_filter *filter, const char *name);

@@ -262,6 +262,7 @@ fn peak_table() {
             (Method::PoissonL1, Some("published"), ""),
             (Method::Frgr, None, ""),
             (Method::Frgr, Some("reference"), ""),
+            (Method::Frgr, Some("fast"), ""),
             (Method::Frgr, None, "guide=l1"),
             (Method::Frgr, None, "levels=1"),
         ] {

@@ -305,7 +305,7 @@ pub unsafe extern "C" fn gdr_filter_release(filter: *mut *mut gdr_filter) -> gdr
     })
 }
 
-/// Reset every parameter of the filter's method to one of its presets (`"prior"`, `"fast"`, `"published"` for `"l1"`; docs/PARAMETERS.md and `gdrecon params` list them); `"spp"` and `"strict"` are kept.
+/// Reset every parameter of the filter's method to one of its presets (`"prior"`, `"fast"`, `"published"` for `"l1"`; `"fast"`, `"reference"` for `"frgr"`; docs/PARAMETERS.md and `gdrecon params` list them); `"spp"` and `"strict"` are kept.
 ///
 /// An unknown preset is `GDR_ERROR_INVALID_ARGUMENT`, with a message that lists the method's presets.
 #[no_mangle]

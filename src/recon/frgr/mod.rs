@@ -121,13 +121,27 @@ impl FrgrConfig {
     }
 
     /// The release's settings, literally: the reference mode (1000 enhancement iterations, no
-    /// noise band), kept for comparison with the default fast mode.
+    /// noise band), kept for comparison with the default.
     pub fn reference() -> Self {
         FrgrConfig {
             radius: REFERENCE_RADIUS,
             enhance_iterations: REFERENCE_ENHANCE_ITERATIONS,
             noise_band: 0.0,
             prefilter_below: PREFILTER_ALWAYS,
+            ..FrgrConfig::default()
+        }
+    }
+
+    /// Faster at a cost on some frames: RDFC's candidate filters over 11 x 11 windows (121
+    /// offsets instead of 441) and the filter over 5 x 5 windows (25 weights a pixel instead
+    /// of 49). The first setting that ran under OIDN's time at 1280 x 720 on an AVX2 CPU
+    /// (0.89-0.91x against the default's 1.64-1.65x); relMSE +2.4 / -0.5 / +0.1 % at 4 / 16 /
+    /// 64 spp on validation (worst frame +27 %), +8.6 / +10.8 / +1.8 % on test (worst +52 %,
+    /// `lamps` at 16 spp): `docs/benchmarks.md`, "Forty-eighth session".
+    pub fn fast() -> Self {
+        FrgrConfig {
+            radius: FAST_RADIUS,
+            rdfc_radius: FAST_RDFC_RADIUS,
             ..FrgrConfig::default()
         }
     }
@@ -213,18 +227,29 @@ impl Params for FrgrConfig {
         ),
     ];
 
-    const PRESETS: &'static [Preset<Self>] = &[Preset {
-        name: "reference",
-        doc: "the release's schedule literally: 1000 gradient-enhancement iterations, the \
-              prefilter at any spp, no noise band",
-        config: FrgrConfig::reference,
-    }];
+    const PRESETS: &'static [Preset<Self>] = &[
+        Preset {
+            name: "reference",
+            doc: "the release's schedule literally: 1000 gradient-enhancement iterations, the \
+                  prefilter at any spp, no noise band",
+            config: FrgrConfig::reference,
+        },
+        Preset {
+            name: "fast",
+            doc: "about half the default's time: RDFC over 11 x 11 windows (rdfc_radius 5) and \
+                  5 x 5 filter windows (radius 2); relMSE +2.4 / -0.5 / +0.1 % at 4 / 16 / \
+                  64 spp on validation (worst frame +27 %), +8.6 / +10.8 / +1.8 % on test \
+                  (worst +52 %)",
+            config: FrgrConfig::fast,
+        },
+    ];
 }
 
 impl Register for FrgrConfig {
     const SWEEP: &'static [&'static str] = &[
         "",
         "reference",
+        "fast",
         "radius=4",
         "levels=1",
         "guide=l1",
@@ -293,6 +318,16 @@ const REFERENCE_RADIUS: usize = 4;
 /// choice: -0.5 / -0.5 / -1.4 %, no frame worse by 1 %. With the prior's guide 4 stays: 3 was
 /// +1.0 / +0.5 / +0.3 % on validation (+2.1 / +0.9 / +0.3 % on test, `lamps` 4 spp +11.5 %).
 const RADIUS: usize = 3;
+
+/// The `fast` preset's filter window radius (5 x 5 windows): on validation the means at 4 and
+/// 16 spp gain over 3 (-2.3 / -2.6 %), but `dusk` at 64 spp loses 25 % (forty-sixth and
+/// forty-eighth sessions), which keeps 3 the default.
+const FAST_RADIUS: usize = 2;
+
+/// The `fast` preset's RDFC window radius (11 x 11 windows, 121 offsets): RDFC's cost goes
+/// with the offsets, so this is about 0.27x the release's 21 x 21; 7 (0.51x) was not enough
+/// to bring the filter under OIDN's time on any CPU measured, 3 lost 9-21 % in the means.
+const FAST_RDFC_RADIUS: usize = 5;
 
 /// Default `prefilter_below`: the feature prefilter runs below 16 spp only. Its noise bound
 /// (`prefilter.rs`: the 3 x 3 range over spp) mistakes a curved surface or an edge for noise

@@ -1,24 +1,34 @@
 //! The CPU a benchmark ran on, named well enough to compare runs: the model name alone is not
 //! (two machines both called "AMD EPYC" here differed 2.6x in GradNet's time against OIDN: one
 //! had AVX-512 VNNI, the other AVX2 only), so the vector instruction sets that the kernels,
-//! ONNX Runtime and OIDN pick at run time are named beside it.
+//! ONNX Runtime and OIDN pick at run time are named beside it, and so is the x86 family and
+//! model, which tell microarchitectures with the same name and the same instructions apart (an
+//! AVX2 EPYC of family 23 model 1, Zen 1, runs 256-bit vectors as two 128-bit halves).
 
-/// `MODEL (SIMD)`, e.g. `AMD EPYC (AVX-512 VNNI BF16)`, `Intel Xeon (AVX-512 VNNI BF16 AMX)` or
-/// `Intel Xeon (AVX2 FMA)`.
+/// `MODEL[, family F model M] (SIMD)`, e.g. `AMD EPYC, family 25 model 17 (AVX-512 VNNI BF16)`,
+/// `Intel(R) Xeon(R) Processor, family 6 model 143 (AVX-512 VNNI BF16 AMX)` or `AMD EPYC,
+/// family 23 model 1 (AVX2 FMA)`.
 pub fn describe() -> String {
     format!("{} ({})", model(), simd())
 }
 
-/// The value of the first line of /proc/cpuinfo (Linux) that starts with `key`.
+/// The value of the first line of /proc/cpuinfo (Linux) whose key is `key`.
 fn cpuinfo(key: &str) -> Option<String> {
     let text = std::fs::read_to_string("/proc/cpuinfo").ok()?;
-    let line = text.lines().find(|l| l.starts_with(key))?;
-    Some(line.split_once(':')?.1.trim().to_owned())
+    text.lines().find_map(|l| {
+        let (k, v) = l.split_once(':')?;
+        (k.trim() == key).then(|| v.trim().to_owned())
+    })
 }
 
-/// The CPU's model name (Linux), or `unknown CPU`.
+/// The CPU's model name, with its family and model numbers where the kernel gives them
+/// (Linux), or `unknown CPU`.
 fn model() -> String {
-    cpuinfo("model name").unwrap_or_else(|| "unknown CPU".to_owned())
+    let name = cpuinfo("model name").unwrap_or_else(|| "unknown CPU".to_owned());
+    match (cpuinfo("cpu family"), cpuinfo("model")) {
+        (Some(family), Some(model)) => format!("{name}, family {family} model {model}"),
+        _ => name,
+    }
 }
 
 /// The widest vector tier the multiversioned kernels run (`x86_64+avx512f+avx512bw+avx512vl`,
