@@ -65,15 +65,35 @@ fn rel_mse(image: &Image, frame: &Frame) -> f64 {
         .rel_mse
 }
 
+/// Whether ONNX Runtime's int8 convolutions here accumulate exactly as on the CPU that made
+/// the int8 fixtures (AVX-512 VNNI). Without VNNI (AVX2, or AVX-512 without it) its u8s8
+/// kernels use VPMADDUBSW, whose 16-bit pair sums saturate: on an AMD EPYC with AVX2 only
+/// (forty-eighth session) the output left the fixtures' by up to 2x at a pixel, while each
+/// guard frame's relMSE stayed within 0.5 % of the fixture's.
+fn int8_kernels_match_the_fixtures() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx512vnni")
+            || std::arch::is_x86_feature_detected!("avxvnni")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
 /// Both graphs: fp32 against `combine` through onnxruntime (itself within 1e-4 of the torch
 /// model), int8 against `combine` with the int8 graph through onnxruntime (the same runtime,
-/// so the same kernels; the features and the mix around it are what this checks).
+/// so the same kernels where the CPU has VNNI as the fixtures' did; the features and the mix
+/// around it are what this checks). Without VNNI the int8 output is held to its accuracy
+/// instead: relMSE within 2 % of the fixture's.
 #[test]
 fn matches_the_python_reference_on_every_guard_frame() {
     for (precision, suffix, file) in [
         (Precision::Fp32, "", "combiner.onnx"),
         (Precision::Int8, "_int8", "combiner_int8.onnx"),
     ] {
+        let exact = precision == Precision::Fp32 || int8_kernels_match_the_fixtures();
         let mut config = CombinerConfig::default();
         config.precision = precision;
         // The reference is the network's mix; the noise band after it is `recon/band.rs`'s.
@@ -82,8 +102,19 @@ fn matches_the_python_reference_on_every_guard_frame() {
             let (got, report) = run(&frame(stem), &MethodConfig::Combiner(config.clone())).unwrap();
             let want = npy(root().join(format!("tests/fixtures/combiner/{stem}{suffix}.npy")));
             let worst = worst_relative(&got, &want);
-            println!("{stem} {file}: worst relative difference {worst:e}");
-            assert!(worst <= 1e-4, "{stem} {file}: {worst:e}");
+            let f = frame(stem);
+            let (rel, rel_want) = (rel_mse(&got, &f), rel_mse(&want, &f));
+            println!(
+                "{stem} {file}: worst relative difference {worst:e}, relMSE {rel:e} (fixture {rel_want:e})"
+            );
+            if exact {
+                assert!(worst <= 1e-4, "{stem} {file}: {worst:e}");
+            } else {
+                assert!(
+                    (rel / rel_want - 1.0).abs() <= 0.02,
+                    "{stem} {file} without VNNI: relMSE {rel:e} against the fixture's {rel_want:e}"
+                );
+            }
             let notes = report.notes.join("\n");
             assert!(notes.contains("the frame's 'prior' layer"), "{notes}");
             assert!(
