@@ -99,10 +99,10 @@ fn matches_the_python_reference_on_every_guard_frame() {
         // The reference is the network's mix; the noise band after it is `recon/band.rs`'s.
         config.noise_band = 0.0;
         for stem in STEMS {
-            let (got, report) = run(&frame(stem), &MethodConfig::Combiner(config.clone())).unwrap();
+            let f = frame(stem);
+            let (got, report) = run(&f, &MethodConfig::Combiner(config.clone())).unwrap();
             let want = npy(root().join(format!("tests/fixtures/combiner/{stem}{suffix}.npy")));
             let worst = worst_relative(&got, &want);
-            let f = frame(stem);
             let (rel, rel_want) = (rel_mse(&got, &f), rel_mse(&want, &f));
             println!(
                 "{stem} {file}: worst relative difference {worst:e}, relMSE {rel:e} (fixture {rel_want:e})"
