@@ -5,20 +5,20 @@
 //! `x_0` gives, after `N` steps, `x_N = x_0 + s q_N(sH) r_0` with `r_0 = -grad E(x_0)` and
 //! `q_N(z) = sum_{j<N} (1 - z)^j = (1 - (1 - z)^N) / z` (Landweber's polynomial). Once
 //! `s lambda_max(H) < 2` the steps lower the energy monotonically, so the schedule can revert
-//! no more and its result is exactly those `N` steps; Gershgorin's bound `lambda_G = max_p 2
-//! sum_e a_e >= lambda_max` tells when ([`Sweeper::lambda_bound`](super::Sweeper)).
+//! no more and its result is exactly those `N` steps; a bound `lambda_B >= lambda_max`
+//! (Anderson and Morley's, `super::edge_bound`) tells when.
 //!
-//! `q_N` is smooth on `[0, z_max]`, `z_max = s lambda_G < 2`, so its Chebyshev series
+//! `q_N` is smooth on `[0, z_max]`, `z_max = s lambda_B < 2`, so its Chebyshev series
 //! converges fast: truncated where the remaining coefficients sum to less than [`TOLERANCE`]
 //! of `q_N(0) = N`, it needs a degree of about `3.5 sqrt(N z_max)` (250 steps at `z_max =
 //! 1.48`, as on the bundled sample and the 720p synthetic frame: 65 products with `H`; 1000:
 //! 131) instead of `N` steps. The series is evaluated by the
 //! three-term recurrence `v_{k+1} = 2 T v_k - v_{k-1}`, `T = (2 / z_max) sH - I` (spectrum in
-//! `[-1, 1]`, so `|v_k| <= |r_0|` and rounding grows only linearly with the degree), summed
-//! into the image as it goes. Each channel is done alone (the channels share `H` and are
-//! independent), so that the three planes a product touches (two terms of the recurrence and
-//! the image) stay in the last-level cache at 1280 x 720; its rows run in parallel, each row's
-//! values computed the same way for any thread count.
+//! `[-1, 1]`, so `|v_k| <= |r_0|` and rounding grows only linearly with the degree), its terms
+//! summed apart and added to the image at the end. Each channel is done alone (the channels
+//! share `H` and are independent), so that the planes a product touches (two terms of the
+//! recurrence, their sum, the weights) stay in the last-level cache at 1280 x 720; its rows run
+//! in parallel, each row's values computed the same way for any thread count.
 
 use rayon::prelude::*;
 
@@ -27,9 +27,10 @@ use crate::progress::Progress;
 
 /// Truncation: the series stops where the magnitudes of the remaining coefficients sum to
 /// less than this fraction of `q_N(0) = N`, which bounds the error of the step sum relative to
-/// its largest gain. Below it the image's error is f32 rounding: in the tests, 1e-6 gave 3.1e-6
-/// of the image against exact arithmetic, 1e-7 1.5e-6, 1e-8 and 1e-10 both 1.4e-6 (the f32
-/// steps themselves: 5e-7).
+/// its largest gain. Below it the image's error is f32 rounding (in the tests: 1e-6 gave 3.1e-6
+/// of the image against exact arithmetic, 1e-7 1.5e-6, 1e-8 and 1e-10 1.4e-6, the f32 steps
+/// 5e-7; Gershgorin's bound then, the edge bound since, where 1e-7, 1e-8 and 1e-9 give the
+/// same errors to two digits).
 pub(super) const TOLERANCE: f64 = 1e-7;
 
 /// Rows per parallel task.
