@@ -22,7 +22,7 @@
 
 use rayon::prelude::*;
 
-use super::{flush, flux, Sweeper};
+use super::{edge_fluxes, flush, Sweeper};
 use crate::progress::Progress;
 
 /// Truncation: the series stops where the magnitudes of the remaining coefficients sum to
@@ -114,16 +114,14 @@ pub(super) fn descend(
         // v_0 = -grad E(x) into va.
         {
             let x = &*x;
-            va.par_chunks_mut(ROWS * w)
-                .enumerate()
-                .for_each(|(i, out)| {
+            va.par_chunks_mut(ROWS * w).enumerate().for_each_init(
+                || (vec![0.0f32; w + 1], vec![0.0f32; w]),
+                |(across, fluxes), (i, out)| {
                     for (j, row) in out.chunks_exact_mut(w).enumerate() {
-                        op.apply::<true>(x, i * ROWS + j, row);
-                        for v in row.iter_mut() {
-                            *v = -*v;
-                        }
+                        op.descent_row(x, i * ROWS + j, row, across, fluxes);
                     }
-                });
+                },
+            );
         }
         // v_1 = T v_0 into vb, and sum = s (c_0 v_0 + c_1 v_1); then each v_k into the older
         // of the two, and sum += s c_k v_k; at the end x += sum.
@@ -295,87 +293,47 @@ impl Operator<'_> {
         );
     }
 
-    /// Row `y` of `grad E(v)` (`BIAS`: with the edges' `b`, as the descent's steps) or of `H v`
-    /// (without) into `out`, `v` one channel plane: per pixel `-right + left - below + above`
-    /// over its edges' fluxes, as [`super::Sweeper`]'s steps sum them.
-    fn apply<const BIAS: bool>(&self, v: &[f32], y: usize, out: &mut [f32]) {
+    /// Row `y` of `-grad E(v)` into `out`, `v` one channel plane: per pixel `right - left +
+    /// below - above` over its edges' fluxes, each row of fluxes by the steps' own kernel
+    /// ([`edge_fluxes`]); `across` (`w + 1`) and `fluxes` (`w`) are scratch.
+    fn descent_row(
+        &self,
+        v: &[f32],
+        y: usize,
+        out: &mut [f32],
+        across: &mut [f32],
+        fluxes: &mut [f32],
+    ) {
         let s = self.sweeper;
         let (w, h, n) = (s.w, s.h, s.w * s.h);
         let o = y * w;
         let mid = &v[o..o + w];
-        let bias = |b: &[f32], k: usize| if BIAS { b[self.c * n + k] } else { 0.0 };
-        let out = &mut out[..w];
-        // The horizontal edges: pixel x gets -flux(x -> x + 1) + flux(x - 1 -> x).
-        let fx = |x: usize| flux(s.ax[o + x], bias(&s.bx, o + x), mid[x + 1] - mid[x]);
-        if w == 1 {
-            out[0] = 0.0;
-        } else {
-            out[0] = -fx(0);
-            out[w - 1] = fx(w - 2);
-            horizontal_row::<BIAS>(
-                &mut out[1..w - 1],
-                mid,
-                &s.ax[o..o + w - 1],
-                &s.bx[self.c * n + o..][..w - 1],
-            );
+        // Horizontal fluxes with a zero on either side: `across[x + 1]` is edge `x -> x + 1`.
+        across[0] = 0.0;
+        across[w] = 0.0;
+        let b = &s.bx[self.c * n + o..][..w - 1];
+        edge_fluxes(
+            &s.ax[o..o + w - 1],
+            b,
+            &mid[..w - 1],
+            &mid[1..],
+            &mut across[1..w],
+        );
+        for (x, out) in out.iter_mut().enumerate() {
+            *out = across[x + 1] - across[x];
         }
-        // The vertical edges: + flux(y - 1 -> y), - flux(y -> y + 1).
-        if y > 0 {
-            let u = o - w;
-            vertical_row::<BIAS>(
-                out,
-                (&v[u..u + w], mid),
-                &s.ay[u..u + w],
-                &s.by[self.c * n + u..][..w],
-                1.0,
-            );
+        // The vertical edges: - flux(y - 1 -> y), + flux(y -> y + 1).
+        for (r, sign) in [(y.wrapping_sub(1), -1.0f32), (y, 1.0)] {
+            if r >= h - 1 {
+                continue;
+            }
+            let (lo, hi) = (&v[r * w..(r + 1) * w], &v[(r + 1) * w..(r + 2) * w]);
+            let b = &s.by[self.c * n + r * w..][..w];
+            edge_fluxes(&s.ay[r * w..(r + 1) * w], b, lo, hi, fluxes);
+            for (out, &f) in out.iter_mut().zip(&*fluxes) {
+                *out += sign * f;
+            }
         }
-        if y + 1 < h {
-            vertical_row::<BIAS>(
-                out,
-                (mid, &v[o + w..o + 2 * w]),
-                &s.ay[o..o + w],
-                &s.by[self.c * n + o..][..w],
-                -1.0,
-            );
-        }
-    }
-}
-
-/// `out[x - 1] = -flux(x -> x + 1) + flux(x - 1 -> x)` for the interior pixels `x` of a row
-/// (`out` is `w - 2` long; `a`, `b` per edge, indexed by its left pixel; `b` read as 0 unless
-/// `BIAS`).
-#[multiversion::multiversion(targets(
-    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
-    "x86_64+avx2+fma"
-))]
-fn horizontal_row<const BIAS: bool>(out: &mut [f32], mid: &[f32], a: &[f32], b: &[f32]) {
-    let m = out.len();
-    let (ml, mc, mr) = (&mid[..m], &mid[1..m + 1], &mid[2..m + 2]);
-    let (al, ac, bl, bc) = (&a[..m], &a[1..m + 1], &b[..m], &b[1..m + 1]);
-    for x in 0..m {
-        let (bl, bc) = if BIAS { (bl[x], bc[x]) } else { (0.0, 0.0) };
-        out[x] = -flux(ac[x], bc, mr[x] - mc[x]) + flux(al[x], bl, mc[x] - ml[x]);
-    }
-}
-
-/// `out += sign * flux(lo -> hi)` over a row of vertical edges (`b` read as 0 unless `BIAS`).
-#[multiversion::multiversion(targets(
-    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
-    "x86_64+avx2+fma"
-))]
-fn vertical_row<const BIAS: bool>(
-    out: &mut [f32],
-    (lo, hi): (&[f32], &[f32]),
-    a: &[f32],
-    b: &[f32],
-    sign: f32,
-) {
-    let n = out.len();
-    let (lo, hi, a, b) = (&lo[..n], &hi[..n], &a[..n], &b[..n]);
-    for x in 0..n {
-        let b = if BIAS { b[x] } else { 0.0 };
-        out[x] += sign * flux(a[x], b, hi[x] - lo[x]);
     }
 }
 
