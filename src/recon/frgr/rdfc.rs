@@ -29,7 +29,9 @@
 //! with the release's radii 1 and 3, the radius-3 sums reuse radius-1 sums in both directions:
 //! three terms instead of seven), so a candidate costs about the same for any patch size;
 //! offsets are weighed in pairs (one pass over the accumulators for two offsets, the same sums
-//! in the same order); the exponential is a branch-free polynomial (`fastmath`), which
+//! in the same order), and their colour and feature distances are computed in pairs too (the
+//! row's own pixels read once for both, the two features' distances in one pass: the same
+//! values, tested bit for bit); the exponential is a branch-free polynomial (`fastmath`), which
 //! vectorises where libm's `expf` does not. The row kernels are also compiled for AVX-512 and
 //! for AVX2 + FMA, picked at run time (`multiversion`); the exponential's polynomial, the
 //! accumulations and the squared differences are `fastmath::madd`s, one FMA instruction in
@@ -188,6 +190,11 @@ const TILE: (usize, usize) = (256, 16);
 /// Window offsets weighed together (see [`weigh_rows`]): pairs, faster than single offsets;
 /// groups of 4 were no faster than pairs.
 const GROUP: usize = 2;
+// The paired distance kernels (`colour_distance_pair`, `feature_distance_pair`) take two.
+const _: () = assert!(
+    GROUP == 2,
+    "the distance kernels are written for pairs of offsets"
+);
 
 /// Colour distance row (Eq. 5-6 without the bandwidth), summed over the 3 channels:
 /// `sum_c ((c_p - c_q)^2 - (v_p + min(v_p, v_q))) / (1e-10 + v_p + v_q)`.
@@ -208,15 +215,54 @@ fn colour_distance_row(
     let (vp0, vp1, vp2) = (&vp0[..n], &vp1[..n], &vp2[..n]);
     let (vq0, vq1, vq2) = (&vq0[..n], &vq1[..n], &vq2[..n]);
     const F: bool = fused!();
-    let term = |a: f32, b: f32, va: f32, vb: f32| {
-        let diff = a - b;
-        madd::<F>(diff, diff, -(va + min(va, vb))) / (1e-10 + va + vb)
-    };
+    let term = colour_term::<F>;
     for i in 0..n {
         let t0 = term(cp0[i], cq0[i], vp0[i], vq0[i]);
         let t1 = term(cp1[i], cq1[i], vp1[i], vq1[i]);
         let t2 = term(cp2[i], cq2[i], vp2[i], vq2[i]);
         out[i] = t0 + t1 + t2;
+    }
+}
+
+/// One channel's term of [`colour_distance_row`].
+#[inline(always)]
+fn colour_term<const F: bool>(a: f32, b: f32, va: f32, vb: f32) -> f32 {
+    let diff = a - b;
+    madd::<F>(diff, diff, -(va + min(va, vb))) / (1e-10 + va + vb)
+}
+
+/// A row of a colour image and of its variance (3 channels each).
+type ColourRows<'a> = ([&'a [f32]; 3], [&'a [f32]; 3]);
+
+/// [`colour_distance_row`] for the two offsets of a group at once (`own`: the row's colour and
+/// variance, `other[s]`: offset `s`'s), the same values, the row's own pixels read once.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma"
+))]
+fn colour_distance_pair(
+    out0: &mut [f32],
+    out1: &mut [f32],
+    own: ColourRows,
+    other: [ColourRows; 2],
+) {
+    const F: bool = fused!();
+    let n = out0.len();
+    let out1 = &mut out1[..n];
+    let (cp, vp) = (own.0.map(|c| &c[..n]), own.1.map(|c| &c[..n]));
+    let cq = other.map(|o| o.0.map(|c| &c[..n]));
+    let vq = other.map(|o| o.1.map(|c| &c[..n]));
+    for i in 0..n {
+        let (c0, c1, c2) = (cp[0][i], cp[1][i], cp[2][i]);
+        let (v0, v1, v2) = (vp[0][i], vp[1][i], vp[2][i]);
+        let t0 = colour_term::<F>(c0, cq[0][0][i], v0, vq[0][0][i]);
+        let t1 = colour_term::<F>(c1, cq[0][1][i], v1, vq[0][1][i]);
+        let t2 = colour_term::<F>(c2, cq[0][2][i], v2, vq[0][2][i]);
+        out0[i] = t0 + t1 + t2;
+        let t0 = colour_term::<F>(c0, cq[1][0][i], v0, vq[1][0][i]);
+        let t1 = colour_term::<F>(c1, cq[1][1][i], v1, vq[1][1][i]);
+        let t2 = colour_term::<F>(c2, cq[1][2][i], v2, vq[1][2][i]);
+        out1[i] = t0 + t1 + t2;
     }
 }
 
@@ -238,19 +284,62 @@ fn feature_distance_row3(
     let (p0, p1, p2, q0, q1, q2) = (&p0[..n], &p1[..n], &p2[..n], &q0[..n], &q1[..n], &q2[..n]);
     let inv = &inv[..n];
     const F: bool = fused!();
-    let sq = |d0: f32, d1: f32, d2: f32| madd::<F>(d2, d2, madd::<F>(d1, d1, d0 * d0));
     // Two loops rather than a closure: a closure is not inlined into the multiversioned
     // copies, which then do not vectorise.
     if fresh {
         for i in 0..n {
-            let (d0, d1, d2) = (p0[i] - q0[i], p1[i] - q1[i], p2[i] - q2[i]);
-            fd[i] = max(sq(d0, d1, d2) * inv[i], 0.0);
+            let (p, q) = ([p0[i], p1[i], p2[i]], [q0[i], q1[i], q2[i]]);
+            fd[i] = max(feature_term::<F>(p, q, inv[i]), 0.0);
         }
     } else {
         for i in 0..n {
-            let (d0, d1, d2) = (p0[i] - q0[i], p1[i] - q1[i], p2[i] - q2[i]);
-            fd[i] = max(sq(d0, d1, d2) * inv[i], fd[i]);
+            let (p, q) = ([p0[i], p1[i], p2[i]], [q0[i], q1[i], q2[i]]);
+            fd[i] = max(feature_term::<F>(p, q, inv[i]), fd[i]);
         }
+    }
+}
+
+/// `|p - q|^2 * inv` for one pixel of a 3-channel feature, as [`feature_distance_row3`] forms it.
+#[inline(always)]
+fn feature_term<const F: bool>(p: [f32; 3], q: [f32; 3], inv: f32) -> f32 {
+    let (d0, d1, d2) = (p[0] - q[0], p[1] - q[1], p[2] - q[2]);
+    madd::<F>(d2, d2, madd::<F>(d1, d1, d0 * d0)) * inv
+}
+
+/// [`feature_distance_row3`] for two 3-channel features (`p[f]`, `inv[f]`: the row's own
+/// pixels and their `1 / (3 k_f^2 D_p)`) and the two offsets of a group at once (`q[s][f]`:
+/// offset `s`'s neighbours): `fd_s = max(term_1, max(term_0, 0))`, the values of two calls
+/// per offset, but the row's own pixels and normalisers read once for both offsets and each
+/// distance written once instead of written, read and written again.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma"
+))]
+fn feature_distance_pair(
+    fd0: &mut [f32],
+    fd1: &mut [f32],
+    p: [[&[f32]; 3]; 2],
+    q: [[[&[f32]; 3]; 2]; 2],
+    inv: [&[f32]; 2],
+) {
+    const F: bool = fused!();
+    let n = fd0.len();
+    let fd1 = &mut fd1[..n];
+    let p = p.map(|f| f.map(|c| &c[..n]));
+    let q = q.map(|s| s.map(|f| f.map(|c| &c[..n])));
+    let inv = inv.map(|v| &v[..n]);
+    for i in 0..n {
+        let pa = [p[0][0][i], p[0][1][i], p[0][2][i]];
+        let pb = [p[1][0][i], p[1][1][i], p[1][2][i]];
+        let (ia, ib) = (inv[0][i], inv[1][i]);
+        let qa0 = [q[0][0][0][i], q[0][0][1][i], q[0][0][2][i]];
+        let qb0 = [q[0][1][0][i], q[0][1][1][i], q[0][1][2][i]];
+        let qa1 = [q[1][0][0][i], q[1][0][1][i], q[1][0][2][i]];
+        let qb1 = [q[1][1][0][i], q[1][1][1][i], q[1][1][2][i]];
+        let d0 = max(feature_term::<F>(pa, qa0, ia), 0.0);
+        fd0[i] = max(feature_term::<F>(pb, qb0, ib), d0);
+        let d1 = max(feature_term::<F>(pa, qa1, ia), 0.0);
+        fd1[i] = max(feature_term::<F>(pb, qb1, ib), d1);
     }
 }
 
@@ -264,7 +353,7 @@ struct WeighInputs<'a> {
 }
 
 /// Weights of one candidate over a row for `P` window offsets, `w = exp(-max(scale * patch,
-/// fd))`, accumulated offset after offset: `den += w`, `maxw = max(maxw, w)`, `num_c += w *
+/// fd))` (`exp(-fd)` for a candidate without colour term, `COLOUR` false), accumulated offset after offset: `den += w`, `maxw = max(maxw, w)`, `num_c += w *
 /// data_c` (the same sums in the same order as one offset at a time, with one read and write
 /// of the accumulators instead of `P`). Each output is its own `&mut` argument: the compiler
 /// then knows they do not overlap, and vectorises.
@@ -272,7 +361,7 @@ struct WeighInputs<'a> {
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
     "x86_64+avx2+fma"
 ))]
-fn weigh_rows<const P: usize>(
+fn weigh_rows<const P: usize, const COLOUR: bool>(
     inp: [&WeighInputs; P],
     den: &mut [f32],
     maxw: &mut [f32],
@@ -294,7 +383,14 @@ fn weigh_rows<const P: usize>(
         let (mut s, mut m) = (den[i], maxw[i]);
         let (mut a0, mut a1, mut a2) = (n0[i], n1[i], n2[i]);
         for o in 0..P {
-            let wgt = exp_nonpositive::<F>(-max(patch[o][i] * scale[o], fd[o][i]));
+            // Without a colour term (`COLOUR` false) the patch is 0 and `max(0, fd) = fd`
+            // (`fd >= 0`, not NaN): the same weight without reading the patch row.
+            let dist = if COLOUR {
+                max(patch[o][i] * scale[o], fd[o][i])
+            } else {
+                fd[o][i]
+            };
+            let wgt = exp_nonpositive::<F>(-dist);
             s += wgt;
             m = max(m, wgt);
             a0 = madd::<F>(wgt, d0[o][i], a0);
@@ -524,7 +620,10 @@ impl Nlm<'_> {
         // borders reflected), so that every patch sum is a sum of shifted slices; column `xs`
         // sits at `off`.
         let (dwp, off) = (tw + 2 * p, p - (x0 - xs));
-        let mut delta = try_vec(dwp * (ye - ys), 0.0f32)?;
+        let mut delta = [
+            try_vec(dwp * (ye - ys), 0.0f32)?,
+            try_vec(dwp * (ye - ys), 0.0f32)?,
+        ];
         // Per slot (the offsets of a group): horizontal and vertical patch sums per radius,
         // and a row's feature distances.
         let per_radius = |len| -> Result<Vec<Vec<f32>>> {
@@ -556,28 +655,48 @@ impl Nlm<'_> {
         // would): a group reads and writes the accumulators once.
         for group in offsets.chunks(GROUP) {
             if !self.radii.is_empty() {
-                for (slot, (hsum, &(ox, oy))) in hsum.iter_mut().zip(group).enumerate() {
-                    // Colour distance rows (the mean over channels' 1/3 is applied later).
-                    for (row, py) in delta.chunks_exact_mut(dwp).zip(ys..ye) {
+                // Colour distance rows per offset (the mean over channels' 1/3 is applied
+                // later), then their patch sums.
+                for (row, py) in (ys..ye).enumerate() {
+                    let own = (
+                        self.colour.rows3(py, xs, 0, dw),
+                        self.var.rows3(py, xs, 0, dw),
+                    );
+                    let other = |(ox, oy): (isize, isize)| {
                         let qy = reflect(py as isize + oy, h);
-                        colour_distance_row(
-                            &mut row[off..off + dw],
-                            self.colour.rows3(py, xs, 0, dw),
+                        (
                             self.colour.rows3(qy, xs, ox, dw),
-                            self.var.rows3(py, xs, 0, dw),
                             self.var.rows3(qy, xs, ox, dw),
-                        );
+                        )
+                    };
+                    let at = row * dwp + off..row * dwp + off + dw;
+                    if let ([d0, d1], &[o0, o1]) = (&mut delta, group) {
+                        let (q0, q1) = (other(o0), other(o1));
+                        let (out0, out1) = (&mut d0[at.clone()], &mut d1[at]);
+                        colour_distance_pair(out0, out1, own, [q0, q1]);
+                    } else {
+                        for (d, &o) in delta.iter_mut().zip(group) {
+                            let q = other(o);
+                            colour_distance_row(&mut d[at.clone()], own.0, q.0, own.1, q.1);
+                        }
+                    }
+                    for d in delta.iter_mut().take(group.len()) {
+                        let row = &mut d[row * dwp..(row + 1) * dwp];
                         for j in (0..off).chain(off + dw..dwp) {
                             row[j] = row[reflected(j, x0, p, w)];
                         }
                     }
+                }
+                for ((delta, hsum), vsum) in
+                    delta.iter().zip(&mut hsum).zip(&mut vsum).take(group.len())
+                {
                     patch_sums(
-                        &delta,
+                        delta,
                         (dwp, ye - ys, offy, th),
                         &self.radii,
                         |j| reflected(j, y0, p, h),
                         hsum,
-                        &mut vsum[slot],
+                        vsum,
                         &mut wsum,
                     );
                 }
@@ -589,9 +708,28 @@ impl Nlm<'_> {
                         .get(s)
                         .map_or(0, |&(_, oy)| reflect(y as isize + oy, h))
                 });
-                for (slot, &(ox, _)) in group.iter().enumerate() {
-                    let qy = qys[slot];
-                    self.feature_distance(&mut fd[slot], &mut acc, (x0, tw), (y, qy), ox);
+                match (&self.features[..], group) {
+                    // Albedo and normal, a pair of offsets: both distances in one pass.
+                    ([(fa, ia), (fb, ib)], &[(ox0, _), (ox1, _)])
+                        if fa.channels == 3 && fb.channels == 3 =>
+                    {
+                        let [fd0, fd1] = &mut fd;
+                        let at = y * w + x0;
+                        feature_distance_pair(
+                            fd0,
+                            fd1,
+                            [fa.rows3(y, x0, 0, tw), fb.rows3(y, x0, 0, tw)],
+                            [(qys[0], ox0), (qys[1], ox1)]
+                                .map(|(qy, ox)| [fa, fb].map(|f| f.rows3(qy, x0, ox, tw))),
+                            [&ia[at..at + tw], &ib[at..at + tw]],
+                        );
+                    }
+                    _ => {
+                        for (slot, &(ox, _)) in group.iter().enumerate() {
+                            let qy = qys[slot];
+                            self.feature_distance(&mut fd[slot], &mut acc, (x0, tw), (y, qy), ox);
+                        }
+                    }
                 }
                 // The neighbours' data rows of each slot, shared by the candidates.
                 let data: [[&[f32]; 3]; GROUP] = std::array::from_fn(|s| {
@@ -618,9 +756,12 @@ impl Nlm<'_> {
                     let mut next = || &mut planes.next().expect("3 planes")[t * tw..][..tw];
                     let (n0, n1, n2) = (next(), next(), next());
                     let (den, maxw) = (&mut den[at..at + tw], &mut maxw[at..at + tw]);
-                    match group.len() {
-                        1 => weigh_rows([&inputs(0)], den, maxw, n0, n1, n2),
-                        _ => weigh_rows([&inputs(0), &inputs(1)], den, maxw, n0, n1, n2),
+                    let (one, two) = ([&inputs(0)], [&inputs(0), &inputs(1)]);
+                    match (group.len(), patch_scale.is_some()) {
+                        (1, true) => weigh_rows::<1, true>(one, den, maxw, n0, n1, n2),
+                        (1, false) => weigh_rows::<1, false>(one, den, maxw, n0, n1, n2),
+                        (_, true) => weigh_rows::<2, true>(two, den, maxw, n0, n1, n2),
+                        (_, false) => weigh_rows::<2, false>(two, den, maxw, n0, n1, n2),
                     }
                 }
             }

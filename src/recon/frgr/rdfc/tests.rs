@@ -514,3 +514,84 @@ fn box_mean_equals_the_per_pixel_form_bit_for_bit() {
         }
     }
 }
+
+/// The three rows as slices.
+fn refs(r: &[Vec<f32>; 3]) -> [&[f32]; 3] {
+    [&r[0], &r[1], &r[2]]
+}
+
+#[test]
+fn paired_kernels_equal_the_single_offset_ones_bit_for_bit() {
+    // The two offsets of a group at once must give each offset's values exactly as one call per
+    // offset does (the tiled filter takes the paired path whenever the group has two offsets
+    // and the features are albedo and normal, the single one otherwise). Row lengths around the
+    // vector widths; variances with zeros (the 1e-10 floor of the colour distance's denominator),
+    // features of both signs.
+    let mut s = 11u64;
+    let mut rnd = move || {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (s >> 40) as f32 / (1u64 << 24) as f32
+    };
+    for n in [1, 7, 8, 9, 16, 33, TILE.0 + 3] {
+        // Variances (non-negative, every third zero) or signed values, `scale` wide.
+        let mut rows = |scale: f32, variance: bool| -> [Vec<f32>; 3] {
+            std::array::from_fn(|_| {
+                (0..n)
+                    .map(|i| match (variance, i % 3) {
+                        (true, 0) => 0.0,
+                        (true, _) => scale * rnd(),
+                        (false, _) => scale * (rnd() - 0.5),
+                    })
+                    .collect()
+            })
+        };
+        // Colour distance: own row and two offsets' rows, colour and variance.
+        let (cp, vp) = (rows(2.0, false), rows(0.01, true));
+        let (cq0, vq0, cq1, vq1) = (
+            rows(2.0, false),
+            rows(0.01, true),
+            rows(2.0, false),
+            rows(0.01, true),
+        );
+        let (mut one0, mut one1) = (vec![0.0f32; n], vec![0.0f32; n]);
+        colour_distance_row(&mut one0, refs(&cp), refs(&cq0), refs(&vp), refs(&vq0));
+        colour_distance_row(&mut one1, refs(&cp), refs(&cq1), refs(&vp), refs(&vq1));
+        let (mut two0, mut two1) = (vec![0.0f32; n], vec![0.0f32; n]);
+        colour_distance_pair(
+            &mut two0,
+            &mut two1,
+            (refs(&cp), refs(&vp)),
+            [(refs(&cq0), refs(&vq0)), (refs(&cq1), refs(&vq1))],
+        );
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&one0), bits(&two0), "colour, offset 0, {n} pixels");
+        assert_eq!(bits(&one1), bits(&two1), "colour, offset 1, {n} pixels");
+        // Feature distance: two features, their normalisers, two offsets' rows.
+        let (fa, fb) = (rows(3.0, false), rows(3.0, false));
+        let (qa0, qb0, qa1, qb1) = (
+            rows(3.0, false),
+            rows(3.0, false),
+            rows(3.0, false),
+            rows(3.0, false),
+        );
+        let [ia, ib, _] =
+            rows(4.0, false).map(|r| r.iter().map(|v| v.abs() + 0.1).collect::<Vec<_>>());
+        let mut one = [vec![0.0f32; n], vec![0.0f32; n]];
+        for (fd, (qa, qb)) in one.iter_mut().zip([(&qa0, &qb0), (&qa1, &qb1)]) {
+            feature_distance_row3(fd, refs(&fa), refs(qa), &ia, true);
+            feature_distance_row3(fd, refs(&fb), refs(qb), &ib, false);
+        }
+        let (mut two0, mut two1) = (vec![0.0f32; n], vec![0.0f32; n]);
+        feature_distance_pair(
+            &mut two0,
+            &mut two1,
+            [refs(&fa), refs(&fb)],
+            [[refs(&qa0), refs(&qb0)], [refs(&qa1), refs(&qb1)]],
+            [&ia, &ib],
+        );
+        assert_eq!(bits(&one[0]), bits(&two0), "features, offset 0, {n} pixels");
+        assert_eq!(bits(&one[1]), bits(&two1), "features, offset 1, {n} pixels");
+    }
+}
