@@ -880,9 +880,8 @@ mod tests {
         let f = |a: f32, b: f32, d: f64| f64::from(a) * d - f64::from(b);
         for _ in 0..steps {
             for (i, out) in next.iter_mut().enumerate() {
-                let (c, k) = (i / n, i % n);
+                let k = i % n;
                 let (x, y) = (k % w, k / w);
-                let _ = c;
                 let mut g = 0.0;
                 if x + 1 < w {
                     g -= f(e.ax[k], e.bx[i], cur[i + 1] - cur[i]);

@@ -517,7 +517,7 @@ fn box_mean_equals_the_per_pixel_form_bit_for_bit() {
 
 /// The three rows as slices.
 fn refs(r: &[Vec<f32>; 3]) -> [&[f32]; 3] {
-    [&r[0], &r[1], &r[2]]
+    r.each_ref().map(Vec::as_slice)
 }
 
 #[test]
