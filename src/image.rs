@@ -99,6 +99,24 @@ impl Image {
         Ok(img)
     }
 
+    /// [`Image::try_par_from_fn`] a row at a time: `f(channel, y, row)` fills the row (zeros on
+    /// entry), rows in parallel; for kernels that read whole rows of their inputs as slices.
+    pub(crate) fn try_par_from_rows(
+        channels: usize,
+        width: usize,
+        height: usize,
+        f: impl Fn(usize, usize, &mut [f32]) + Sync,
+    ) -> Result<Self> {
+        let mut img = Image::try_zeros(channels, width, height)?;
+        if width > 0 {
+            img.as_mut_slice()
+                .par_chunks_mut(width)
+                .enumerate()
+                .for_each(|(r, row)| f(r / height, r % height, row));
+        }
+        Ok(img)
+    }
+
     /// Sets every value to `f((channel, x, y))`, rows in parallel.
     fn par_fill(&mut self, f: impl Fn((usize, usize, usize)) -> f32 + Sync) {
         let (width, height) = self.size();

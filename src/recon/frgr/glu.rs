@@ -128,14 +128,22 @@ impl Glu {
     }
 
     /// The 9 coarse candidates of fine pixel `(x, y)`: the 3 x 3 neighbours of its parent
-    /// (reflect-101), row by row.
+    /// (reflect-101), row by row; the per-pixel form of what [`Glu::refit`] builds per row.
+    #[cfg(test)]
     fn candidates(&self, x: usize, y: usize) -> [usize; 9] {
+        let (rows, columns) = (self.candidate_rows(y), self.candidate_columns(x));
+        std::array::from_fn(|k| rows[k / 3] + columns[k % 3])
+    }
+
+    /// The offsets (`row * coarse width`) of the candidates' coarse rows for fine row `y`.
+    fn candidate_rows(&self, y: usize) -> [usize; 3] {
         let (cw, ch) = self.coarse;
-        let (px, py) = ((x / 2) as isize, (y / 2) as isize);
-        std::array::from_fn(|k| {
-            let (dx, dy) = ((k % 3) as isize - 1, (k / 3) as isize - 1);
-            reflect(py + dy, ch) * cw + reflect(px + dx, cw)
-        })
+        std::array::from_fn(|d| reflect((y / 2 + d) as isize - 1, ch) * cw)
+    }
+
+    /// The candidates' coarse columns for fine column `x`.
+    fn candidate_columns(&self, x: usize) -> [usize; 3] {
+        std::array::from_fn(|d| reflect((x / 2 + d) as isize - 1, self.coarse.0))
     }
 
     /// Fits the fine pixels to the coarse guide (all of them, or those with a candidate in
@@ -159,10 +167,13 @@ impl Glu {
                 // Scratch for the row (every entry read is written first for each lane group).
                 let mut u = [[[0.0f64; LANES]; 9]; 9];
                 let mut g = [[[0.0f64; LANES]; 9]; 9];
+                let rows = glu.candidate_rows(y);
                 for x0 in (0..w).step_by(LANES) {
                     // Lanes past the row's end repeat its last pixel and are not written.
-                    let cand: [[usize; 9]; LANES] =
-                        std::array::from_fn(|l| glu.candidates((x0 + l).min(w - 1), y));
+                    let cand: [[usize; 9]; LANES] = std::array::from_fn(|l| {
+                        let columns = glu.candidate_columns((x0 + l).min(w - 1));
+                        std::array::from_fn(|k| rows[k / 3] + columns[k % 3])
+                    });
                     let todo: [bool; LANES] = std::array::from_fn(|l| {
                         x0 + l < w && only.is_none_or(|o| cand[l].iter().any(|&q| o[q]))
                     });
@@ -176,10 +187,21 @@ impl Glu {
                             *v = f64::from(fs[c * n + y * w + (x0 + l).min(w - 1)]);
                         }
                     }
+                    // Away from the coarse image's sides (no reflection) lanes 2i and 2i + 1
+                    // share a parent: candidate k of lane l is `cand[0][k] + l / 2`, the same
+                    // values read as 4 consecutive ones.
+                    let inner = x0 >= 2 && x0 / 2 + LANES / 2 < cw;
                     for (k, uk) in u.iter_mut().enumerate() {
                         for ((c, uc), tc) in uk[..nc].iter_mut().enumerate().zip(&t) {
-                            for (l, v) in uc.iter_mut().enumerate() {
-                                *v = tc[l] - f64::from(cs[c * cn + cand[l][k]]);
+                            if inner {
+                                let near = &cs[c * cn + cand[0][k]..][..LANES / 2];
+                                for (l, v) in uc.iter_mut().enumerate() {
+                                    *v = tc[l] - f64::from(near[l / 2]);
+                                }
+                            } else {
+                                for (l, v) in uc.iter_mut().enumerate() {
+                                    *v = tc[l] - f64::from(cs[c * cn + cand[l][k]]);
+                                }
                             }
                         }
                     }
@@ -198,20 +220,28 @@ impl Glu {
     /// variance (`variance = true`) of a box block is the variance of the mean, sum / 16.
     pub fn downsample(&self, img: &Image, variance: bool) -> Result<Image> {
         let (cw, ch) = self.coarse;
-        Image::try_par_from_fn(img.channels(), cw, ch, |(c, x, y)| {
-            match self.samples[y * cw + x] {
-                Sample::Box => {
-                    let s = img.at(c, 2 * x, 2 * y)
-                        + img.at(c, 2 * x + 1, 2 * y)
-                        + img.at(c, 2 * x, 2 * y + 1)
-                        + img.at(c, 2 * x + 1, 2 * y + 1);
-                    if variance {
-                        s / 16.0
-                    } else {
-                        s / 4.0
+        let (w, h) = self.fine;
+        debug_assert!(img.size() == self.fine);
+        let fs = img.as_slice();
+        Image::try_par_from_rows(img.channels(), cw, ch, |c, y, row| {
+            // The block's two fine rows.
+            let rows = [c * w * h + 2 * y * w, c * w * h + (2 * y + 1) * w];
+            let samples = &self.samples[y * cw..(y + 1) * cw];
+            for (x, (v, sample)) in row.iter_mut().zip(samples).enumerate() {
+                *v = match *sample {
+                    Sample::Box => {
+                        let s = fs[rows[0] + 2 * x]
+                            + fs[rows[0] + 2 * x + 1]
+                            + fs[rows[1] + 2 * x]
+                            + fs[rows[1] + 2 * x + 1];
+                        if variance {
+                            s / 16.0
+                        } else {
+                            s / 4.0
+                        }
                     }
-                }
-                Sample::Point(i, j) => img.at(c, 2 * x + i as usize, 2 * y + j as usize),
+                    Sample::Point(i, j) => fs[rows[usize::from(j)] + 2 * x + usize::from(i)],
+                };
             }
         })
     }
@@ -229,42 +259,45 @@ impl Glu {
     /// samples, of the fine differences summed along a path (horizontal, then vertical).
     pub fn downsample_gradients(&self, dx: &Image, dy: &Image) -> Result<(Image, Image)> {
         let (cw, ch) = self.coarse;
-        let path = |c: usize, (sx, sy): (usize, usize), (tx, ty): (usize, usize)| -> f32 {
+        let (w, h) = self.fine;
+        debug_assert!(dx.size() == self.fine && dy.size() == self.fine);
+        let (dxs, dys, n) = (dx.as_slice(), dy.as_slice(), w * h);
+        // The path from `s` to `t` in the channel plane at offset `o`: along `s`'s row, then
+        // `t`'s column (sums in that order, which the tests' oracle repeats).
+        let path = |o: usize, (sx, sy): (usize, usize), (tx, ty): (usize, usize)| -> f32 {
             let mut s = 0.0;
-            let (x0, x1) = (sx.min(tx), sx.max(tx));
+            let row = o + sy * w;
             let sign = if tx >= sx { 1.0 } else { -1.0 };
-            for x in x0..x1 {
-                s += sign * dx.at(c, x, sy);
+            for v in &dxs[row + sx.min(tx)..row + sx.max(tx)] {
+                s += sign * v;
             }
-            let (y0, y1) = (sy.min(ty), sy.max(ty));
             let sign = if ty >= sy { 1.0 } else { -1.0 };
-            for y in y0..y1 {
-                s += sign * dy.at(c, tx, y);
+            for y in sy.min(ty)..sy.max(ty) {
+                s += sign * dys[o + y * w + tx];
             }
             s
         };
-        let edge = |c: usize, a: (usize, usize), b: (usize, usize)| -> f32 {
+        let edge = |o: usize, a: (usize, usize), b: (usize, usize)| -> f32 {
             let ((ma, la), (mb, lb)) = (self.members(a.0, a.1), self.members(b.0, b.1));
             let mut s = 0.0;
             for &p in &ma[..la] {
                 for &q in &mb[..lb] {
-                    s += path(c, p, q);
+                    s += path(o, p, q);
                 }
             }
             s / (la * lb) as f32
         };
-        let cdx = Image::try_par_from_fn(3, cw, ch, |(c, x, y)| {
-            if x + 1 < cw {
-                edge(c, (x, y), (x + 1, y))
-            } else {
-                0.0
+        // The last column of `cdx` and the last row of `cdy` stay 0.
+        let cdx = Image::try_par_from_rows(3, cw, ch, |c, y, row| {
+            for (x, v) in row[..cw - 1].iter_mut().enumerate() {
+                *v = edge(c * n, (x, y), (x + 1, y));
             }
         })?;
-        let cdy = Image::try_par_from_fn(3, cw, ch, |(c, x, y)| {
+        let cdy = Image::try_par_from_rows(3, cw, ch, |c, y, row| {
             if y + 1 < ch {
-                edge(c, (x, y), (x, y + 1))
-            } else {
-                0.0
+                for (x, v) in row.iter_mut().enumerate() {
+                    *v = edge(c * n, (x, y), (x, y + 1));
+                }
             }
         })?;
         Ok((cdx, cdy))
@@ -280,17 +313,20 @@ impl Glu {
         let (cw, ch) = self.coarse;
         let cn = cw * ch;
         let s = img.as_slice();
-        let up = Image::try_par_from_fn(img.channels(), w, h, |(c, x, y)| {
-            let (a, b, wt) = self.fit[y * w + x];
-            wt * s[c * cn + a as usize] + (1.0 - wt) * s[c * cn + b as usize]
+        let up = Image::try_par_from_rows(img.channels(), w, h, |c, y, row| {
+            let cs = &s[c * cn..(c + 1) * cn];
+            for (v, &(a, b, wt)) in row.iter_mut().zip(&self.fit[y * w..(y + 1) * w]) {
+                *v = wt * cs[a as usize] + (1.0 - wt) * cs[b as usize];
+            }
         })?;
         let var = variance
             .map(|v| {
                 let vs = v.as_slice();
-                Image::try_par_from_fn(v.channels(), w, h, |(c, x, y)| {
-                    let (a, b, wt) = self.fit[y * w + x];
-                    wt * wt * vs[c * cn + a as usize]
-                        + (1.0 - wt) * (1.0 - wt) * vs[c * cn + b as usize]
+                Image::try_par_from_rows(v.channels(), w, h, |c, y, row| {
+                    let cs = &vs[c * cn..(c + 1) * cn];
+                    for (v, &(a, b, wt)) in row.iter_mut().zip(&self.fit[y * w..(y + 1) * w]) {
+                        *v = wt * wt * cs[a as usize] + (1.0 - wt) * (1.0 - wt) * cs[b as usize];
+                    }
                 })
             })
             .transpose()?;
@@ -537,6 +573,119 @@ mod tests {
                 "pixel {p}: {got} vs {best}"
             );
         }
+    }
+
+    /// Downsampling, gradient downsampling and upsampling as they were written per pixel (one
+    /// closure call a pixel, `Image::at`): the oracle of the row kernels.
+    fn resample_literal(glu: &Glu, img: &Image, dx: &Image, dy: &Image) -> [Image; 6] {
+        let (cw, ch) = glu.coarse;
+        let (w, h) = glu.fine;
+        let down = |variance: bool| {
+            Image::from_fn(img.channels(), cw, ch, |(c, x, y)| {
+                match glu.samples[y * cw + x] {
+                    Sample::Box => {
+                        let s = img.at(c, 2 * x, 2 * y)
+                            + img.at(c, 2 * x + 1, 2 * y)
+                            + img.at(c, 2 * x, 2 * y + 1)
+                            + img.at(c, 2 * x + 1, 2 * y + 1);
+                        if variance {
+                            s / 16.0
+                        } else {
+                            s / 4.0
+                        }
+                    }
+                    Sample::Point(i, j) => img.at(c, 2 * x + i as usize, 2 * y + j as usize),
+                }
+            })
+        };
+        let path = |c: usize, (sx, sy): (usize, usize), (tx, ty): (usize, usize)| -> f32 {
+            let mut s = 0.0;
+            let sign = if tx >= sx { 1.0 } else { -1.0 };
+            for x in sx.min(tx)..sx.max(tx) {
+                s += sign * dx.at(c, x, sy);
+            }
+            let sign = if ty >= sy { 1.0 } else { -1.0 };
+            for y in sy.min(ty)..sy.max(ty) {
+                s += sign * dy.at(c, tx, y);
+            }
+            s
+        };
+        let edge = |c: usize, a: (usize, usize), b: (usize, usize)| -> f32 {
+            let ((ma, la), (mb, lb)) = (glu.members(a.0, a.1), glu.members(b.0, b.1));
+            let mut s = 0.0;
+            for &p in &ma[..la] {
+                for &q in &mb[..lb] {
+                    s += path(c, p, q);
+                }
+            }
+            s / (la * lb) as f32
+        };
+        let cdx = Image::from_fn(3, cw, ch, |(c, x, y)| {
+            if x + 1 < cw {
+                edge(c, (x, y), (x + 1, y))
+            } else {
+                0.0
+            }
+        });
+        let cdy = Image::from_fn(3, cw, ch, |(c, x, y)| {
+            if y + 1 < ch {
+                edge(c, (x, y), (x, y + 1))
+            } else {
+                0.0
+            }
+        });
+        let coarse = down(false);
+        let cs = coarse.as_slice();
+        let up = |square: bool| {
+            Image::from_fn(img.channels(), w, h, |(c, x, y)| {
+                let (a, b, wt) = glu.fit[y * w + x];
+                let (a, b) = (cs[c * cw * ch + a as usize], cs[c * cw * ch + b as usize]);
+                if square {
+                    wt * wt * a + (1.0 - wt) * (1.0 - wt) * b
+                } else {
+                    wt * a + (1.0 - wt) * b
+                }
+            })
+        };
+        [down(false), down(true), cdx, cdy, up(false), up(true)]
+    }
+
+    #[test]
+    fn row_kernels_equal_the_per_pixel_resampling_bit_for_bit() {
+        // Box and point-sampled blocks, gradients whose paths cross both, 9 and 3 channels.
+        let mut points = 0;
+        for (w, h, nc) in [(22, 10, 9), (16, 6, 3), (2, 2, 9)] {
+            let value = |c: usize, x: usize, y: usize, salt: usize| {
+                let k = (x * 7919 + y * 104_729 + c * 1_299_709 + salt * 15_485_863) % 1000;
+                (k as f32 / 1000.0 - 0.3) * if c < 3 { 4.0 } else { 0.3 }
+            };
+            let j = Image::from_fn(nc, w, h, |(c, x, y)| value(c, x, y, 0));
+            let glu = Glu::new(&j);
+            points += glu.samples.iter().filter(|s| **s != Sample::Box).count();
+            let [dx, dy] =
+                [1, 2].map(|salt| Image::from_fn(3, w, h, |(c, x, y)| value(c, x, y, salt)));
+            let want = resample_literal(&glu, &j, &dx, &dy);
+            let coarse = glu.downsample(&j, false).unwrap();
+            let (cdx, cdy) = glu.downsample_gradients(&dx, &dy).unwrap();
+            let (up, var) = glu.upsample(&coarse, Some(&coarse)).unwrap();
+            let got = [
+                coarse,
+                glu.downsample(&j, true).unwrap(),
+                cdx,
+                cdy,
+                up,
+                var.unwrap(),
+            ];
+            for (k, (g, e)) in got.iter().zip(&want).enumerate() {
+                let bits = |i: &Image| i.as_slice().iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                assert_eq!(
+                    (g.size(), bits(g)),
+                    (e.size(), bits(e)),
+                    "{w} x {h} x {nc}, output {k}"
+                );
+            }
+        }
+        assert!(points > 0, "no block was point-sampled");
     }
 
     #[test]
