@@ -367,28 +367,41 @@ fn best_pairs(
             g[ka][kb] = d;
         }
     }
-    let mut pairs = [[4u8, 4]; LANES];
-    let mut best_w = [1.0f32; LANES];
+    // Per lane the best pair as `9 a + b`, its weight and error, kept by selects rather than
+    // branches (all f64, so that the lane loops are vector loops).
+    let mut code = [(4 * 9 + 4) as f64; LANES];
+    let mut best_w = [1.0f64; LANES];
     let mut best = [f64::INFINITY; LANES];
     for ia in 0..9 {
         for ib in ia..9 {
             let (gaa, gbb, gab) = (&g[ia][ia], &g[ib][ib], &g[ia][ib]);
+            let (mut wgt, mut err) = ([0.0f64; LANES], [0.0f64; LANES]);
             for l in 0..LANES {
                 let num = gbb[l] - gab[l];
                 let den = gaa[l] + gbb[l] - 2.0 * gab[l];
-                let wgt = if den > 0.0 {
-                    (num / den).clamp(0.0, 1.0)
-                } else {
-                    1.0
-                };
-                let err = (gbb[l] - 2.0 * wgt * num + wgt * wgt * den).max(0.0);
-                if err < best[l] {
-                    (pairs[l], best_w[l], best[l]) = ([ia as u8, ib as u8], wgt as f32, err);
-                }
+                let ratio = num / den;
+                // `ratio.clamp(0.0, 1.0)`, spelt out.
+                let clamped = if ratio < 0.0 { 0.0 } else { ratio };
+                let clamped = if clamped > 1.0 { 1.0 } else { clamped };
+                let w = if den > 0.0 { clamped } else { 1.0 };
+                let e = gbb[l] - 2.0 * w * num + w * w * den;
+                // `e.max(0.0)`, spelt out (0 for a negative or NaN `e`).
+                (wgt[l], err[l]) = (w, if e >= 0.0 { e } else { 0.0 });
+            }
+            let pair = (9 * ia + ib) as f64;
+            for l in 0..LANES {
+                let better = err[l] < best[l];
+                code[l] = if better { pair } else { code[l] };
+                best_w[l] = if better { wgt[l] } else { best_w[l] };
+                best[l] = if better { err[l] } else { best[l] };
             }
         }
     }
-    (pairs, best_w, best)
+    let pairs = code.map(|c| {
+        let c = c as u8;
+        [c / 9, c % 9]
+    });
+    (pairs, best_w.map(|w| w as f32), best)
 }
 
 #[cfg(test)]
