@@ -287,16 +287,27 @@ impl Glu {
             }
             s / (la * lb) as f32
         };
-        // The last column of `cdx` and the last row of `cdy` stay 0.
+        // The last column of `cdx` and the last row of `cdy` stay 0. Edges between two box
+        // blocks (nearly all) first, over whole rows; edges with a point-sampled end again.
+        let point = |x: usize, y: usize| self.samples[y * cw + x] != Sample::Box;
         let cdx = Image::try_par_from_rows(3, cw, ch, |c, y, row| {
-            for (x, v) in row[..cw - 1].iter_mut().enumerate() {
-                *v = edge(c * n, (x, y), (x + 1, y));
+            let (o, fy) = (c * n, 2 * y);
+            let split = |s: &[f32], r: usize| Split::new(&s[o + r * w..][..w]);
+            let dx = [fy, fy + 1].map(|r| split(dxs, r));
+            box_edges_x(dx.each_ref(), &split(dys, fy), &mut row[..cw - 1]);
+            for x in (0..cw - 1).filter(|&x| point(x, y) || point(x + 1, y)) {
+                row[x] = edge(o, (x, y), (x + 1, y));
             }
         })?;
         let cdy = Image::try_par_from_rows(3, cw, ch, |c, y, row| {
             if y + 1 < ch {
-                for (x, v) in row.iter_mut().enumerate() {
-                    *v = edge(c * n, (x, y), (x, y + 1));
+                let (o, fy) = (c * n, 2 * y);
+                let split = |s: &[f32], r: usize| Split::new(&s[o + r * w..][..w]);
+                let dx = [fy, fy + 1].map(|r| split(dxs, r));
+                let dy = [fy, fy + 1, fy + 2, fy + 3].map(|r| split(dys, r));
+                box_edges_y(dx.each_ref(), dy.each_ref(), row);
+                for x in (0..cw).filter(|&x| point(x, y) || point(x, y + 1)) {
+                    row[x] = edge(o, (x, y), (x, y + 1));
                 }
             }
         })?;
@@ -331,6 +342,114 @@ impl Glu {
             })
             .transpose()?;
         Ok((up, var))
+    }
+}
+
+/// A fine row split into its even and odd columns (the left and right columns of the blocks),
+/// so that the box-edge kernels read consecutive values.
+struct Split {
+    even: Vec<f32>,
+    odd: Vec<f32>,
+}
+
+impl Split {
+    fn new(row: &[f32]) -> Self {
+        let (even, odd) = row.chunks_exact(2).map(|p| (p[0], p[1])).unzip();
+        Split { even, odd }
+    }
+}
+
+/// Calls `$f::<a, b, c, d>` for every member pair of two box blocks, source member `(a, b)`
+/// outer and target member `(c, d)` inner, each in [`Glu::members`]' order (that of the sums).
+macro_rules! each_box_pair {
+    ($f:ident, $args:tt) => {
+        each_box_pair!(@source $f, $args, (0, 0), (1, 0), (0, 1), (1, 1))
+    };
+    (@source $f:ident, $args:tt, $(($a:literal, $b:literal)),*) => {
+        $(each_box_pair!(@target $f, $args, $a, $b, (0, 0), (1, 0), (0, 1), (1, 1));)*
+    };
+    (@target $f:ident, $args:tt, $a:literal, $b:literal, $(($c:literal, $d:literal)),*) => {
+        $($f::<$a, $b, $c, $d> $args;)*
+    };
+}
+
+/// [`Glu::downsample_gradients`]' horizontal edges of one coarse row, every block a box:
+/// `out[x]` from block `x` to block `x + 1`, given the block row's two fine rows of `dx` and
+/// the first of `dy`. The same sums in the same order as the generic edge: per member pair
+/// (one pass over the row each, so that the pixels are the vector lanes), along the source's
+/// row, then down or up the target's column; then the mean.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma"
+))]
+fn box_edges_x(dx: [&Split; 2], dy: &Split, out: &mut [f32]) {
+    let m = out.len() + 1;
+    let dx = dx.map(|r| [&r.even[..m], &r.odd[..m]]);
+    let dy = [&dy.even[..m], &dy.odd[..m]];
+    out.fill(0.0);
+    each_box_pair!(box_path_x, (dx, dy, out));
+    out.iter_mut().for_each(|v| *v /= 16.0);
+}
+
+/// One member pair's paths for [`box_edges_x`]: from `(2x + A, B)` to `(2x + 2 + C, D)`.
+#[inline(always)]
+fn box_path_x<const A: usize, const B: usize, const C: usize, const D: usize>(
+    dx: [[&[f32]; 2]; 2],
+    dy: [&[f32]; 2],
+    out: &mut [f32],
+) {
+    let [e, o] = dx[B];
+    for (x, v) in out.iter_mut().enumerate() {
+        // Fine columns 2x .. 2x + 3: block x, then block x + 1.
+        let h = [e[x], o[x], e[x + 1], o[x + 1]];
+        let mut s = 0.0f32;
+        for &u in &h[A..2 + C] {
+            s += u;
+        }
+        let t = dy[C][x + 1];
+        if D > B {
+            s += t;
+        } else if D < B {
+            s += -t;
+        }
+        *v += s;
+    }
+}
+
+/// [`box_edges_x`] for vertical edges: `out[x]` from block `(x, y)` to block `(x, y + 1)`,
+/// given the two fine rows of `dx` of the upper block and the four of `dy` of both.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma"
+))]
+fn box_edges_y(dx: [&Split; 2], dy: [&Split; 4], out: &mut [f32]) {
+    let m = out.len();
+    let dx = dx.map(|r| &r.even[..m]);
+    let dy = dy.map(|r| [&r.even[..m], &r.odd[..m]]);
+    out.fill(0.0);
+    each_box_pair!(box_path_y, (dx, dy, out));
+    out.iter_mut().for_each(|v| *v /= 16.0);
+}
+
+/// One member pair's paths for [`box_edges_y`]: from `(2x + A, B)` to `(2x + C, 2 + D)`.
+#[inline(always)]
+fn box_path_y<const A: usize, const B: usize, const C: usize, const D: usize>(
+    dx: [&[f32]; 2],
+    dy: [[&[f32]; 2]; 4],
+    out: &mut [f32],
+) {
+    for (x, v) in out.iter_mut().enumerate() {
+        let mut s = 0.0f32;
+        let h = dx[B][x];
+        if C > A {
+            s += h;
+        } else if C < A {
+            s += -h;
+        }
+        for r in &dy[B..2 + D] {
+            s += r[C][x];
+        }
+        *v += s;
     }
 }
 
@@ -665,9 +784,10 @@ mod tests {
 
     #[test]
     fn row_kernels_equal_the_per_pixel_resampling_bit_for_bit() {
-        // Box and point-sampled blocks, gradients whose paths cross both, 9 and 3 channels.
+        // Box and point-sampled blocks, gradients whose paths cross both, 9 and 3 channels,
+        // rows long enough for the box-edge kernels' vector loops (16 lanes) and short ones.
         let mut points = 0;
-        for (w, h, nc) in [(22, 10, 9), (16, 6, 3), (2, 2, 9)] {
+        for (w, h, nc) in [(22, 10, 9), (16, 6, 3), (2, 2, 9), (78, 8, 3)] {
             let value = |c: usize, x: usize, y: usize, salt: usize| {
                 let k = (x * 7919 + y * 104_729 + c * 1_299_709 + salt * 15_485_863) % 1000;
                 (k as f32 / 1000.0 - 0.3) * if c < 3 { 4.0 } else { 0.3 }
