@@ -101,23 +101,26 @@ impl Glu {
             return Ok(glu);
         }
         let mut changed = try_vec(cw * ch, false)?;
-        for by in 0..ch {
-            for bx in 0..cw {
-                let mut worst = (ERROR_THRESHOLD, None);
-                for jj in 0..2 {
-                    for ii in 0..2 {
-                        let e = errors[(2 * by + jj) * w + 2 * bx + ii];
-                        if e > worst.0 {
-                            worst = (e, Some((ii as u8, jj as u8)));
+        glu.samples
+            .par_chunks_mut(cw)
+            .zip(changed.par_chunks_mut(cw))
+            .enumerate()
+            .for_each(|(by, (samples, changed))| {
+                for (bx, (sample, changed)) in samples.iter_mut().zip(changed).enumerate() {
+                    let mut worst = (ERROR_THRESHOLD, None);
+                    for jj in 0..2 {
+                        for ii in 0..2 {
+                            let e = errors[(2 * by + jj) * w + 2 * bx + ii];
+                            if e > worst.0 {
+                                worst = (e, Some((ii as u8, jj as u8)));
+                            }
                         }
                     }
+                    if let (_, Some((ii, jj))) = worst {
+                        (*sample, *changed) = (Sample::Point(ii, jj), true);
+                    }
                 }
-                if let (_, Some((ii, jj))) = worst {
-                    glu.samples[by * cw + bx] = Sample::Point(ii, jj);
-                    changed[by * cw + bx] = true;
-                }
-            }
-        }
+            });
         if changed.contains(&true) {
             // Only the fine pixels with a point-sampled block among their 9 candidates can fit
             // differently: the box blocks' values did not change.
