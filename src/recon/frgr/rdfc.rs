@@ -947,13 +947,19 @@ fn rdfc_with(
         .iter()
         .map(|(f, ratio)| {
             let fs = f.as_slice();
-            raw.par_iter_mut().enumerate().for_each(|(i, raw)| {
-                *raw = (0..3)
-                    .map(|ch| {
-                        let (e, vv) = (fs[ch * n + i] - c[ch * n + i], v[ch * n + i]);
-                        e * e - vv + 2.0 * vv * ratio[i]
-                    })
-                    .sum()
+            raw.par_chunks_mut(w).enumerate().for_each(|(y, raw)| {
+                let row = y * w..(y + 1) * w;
+                let ratio = &ratio[row.clone()];
+                // From -0.0 (as `Iterator::sum`), the channels in order.
+                raw.fill(-0.0);
+                for ch in 0..3 {
+                    let plane = ch * n + row.start..ch * n + row.end;
+                    let (fs, c, v) = (&fs[plane.clone()], &c[plane.clone()], &v[plane]);
+                    for (x, raw) in raw.iter_mut().enumerate() {
+                        let (e, vv) = (fs[x] - c[x], v[x]);
+                        *raw += e * e - vv + 2.0 * vv * ratio[x];
+                    }
+                }
             });
             let mut smooth = try_vec(n, 0.0)?;
             box_mean(&raw, w, h, 1, &mut tmp, &mut smooth)?;
@@ -961,12 +967,23 @@ fn rdfc_with(
         })
         .collect::<Result<_>>()?;
     let m = filtered.len();
-    let onehot = Image::try_par_from_fn(m, w, h, |(k, x, y)| {
-        let i = y * w + x;
-        let best = (0..m)
-            .min_by(|&a, &b| sure[a][i].total_cmp(&sure[b][i]))
-            .unwrap_or(0);
-        f32::from(u8::from(best == k))
+    // Per pixel the candidate of least SURE (the first of equals, as `min_by`), one-hot.
+    const _: () = assert!(CANDIDATES.len() <= 256, "candidate indices are u8");
+    let mut best = try_vec(n, 0u8)?;
+    best.par_chunks_mut(w).enumerate().for_each(|(y, best)| {
+        let row = y * w..(y + 1) * w;
+        for (k, sk) in sure.iter().enumerate().skip(1) {
+            for (b, (x, &e)) in best.iter_mut().zip(sk[row.clone()].iter().enumerate()) {
+                if e.total_cmp(&sure[usize::from(*b)][row.start + x]).is_lt() {
+                    *b = k as u8;
+                }
+            }
+        }
+    });
+    let onehot = Image::try_par_from_rows(m, w, h, |k, y, row| {
+        for (v, &b) in row.iter_mut().zip(&best[y * w..(y + 1) * w]) {
+            *v = f32::from(u8::from(usize::from(b) == k));
+        }
     })?;
     let sel = nlm_candidates(
         colour,
@@ -983,17 +1000,19 @@ fn rdfc_with(
     .remove(0)
     .0;
     let s = sel.as_slice();
-    Image::try_par_from_fn(3, w, h, |(ch, x, y)| {
-        let i = y * w + x;
-        let (mut acc, mut tot) = (0.0, 0.0);
+    Image::try_par_from_rows(3, w, h, |ch, y, out| {
+        let (row, plane) = (y * w, ch * n + y * w);
+        // `out` (zeros) and `tot` accumulate, candidate by candidate as before.
+        let mut tot = vec![0.0f32; w];
         for (k, (f, _)) in filtered.iter().enumerate() {
-            acc += s[k * n + i] * f.as_slice()[ch * n + i];
-            tot += s[k * n + i];
+            let (sk, fk) = (&s[k * n + row..][..w], &f.as_slice()[plane..][..w]);
+            for ((acc, t), (&a, &b)) in out.iter_mut().zip(&mut tot).zip(sk.iter().zip(fk)) {
+                *acc += a * b;
+                *t += a;
+            }
         }
-        if tot > 0.0 {
-            acc / tot
-        } else {
-            c[ch * n + i]
+        for ((o, &t), &c) in out.iter_mut().zip(&tot).zip(&c[plane..][..w]) {
+            *o = if t > 0.0 { *o / t } else { c };
         }
     })
 }
