@@ -17,8 +17,11 @@
 //! Sizes must be even: [`pad_even`] extends by reflect-101 and the caller crops afterwards.
 //!
 //! The fit, the stage's cost, runs 8 consecutive fine pixels of a row at once, one per f64
-//! lane ([`best_pairs`], compiled for AVX-512 and AVX2 as well), with the per-pixel arithmetic
-//! unchanged: the same fits bit for bit (tested against the per-pixel version).
+//! lane ([`best_pairs`], compiled for AVX-512 and AVX2 as well; the best pair kept by selects,
+//! so that its loop is a vector loop), with the per-pixel arithmetic unchanged: the same fits
+//! bit for bit (tested against the per-pixel version). Resampling runs over rows, and the
+//! gradients between two box blocks in vector kernels ([`box_edges_x`], [`box_edges_y`]) that
+//! sum the same paths in the same order as the generic code (tested bit for bit as well).
 
 use std::borrow::Cow;
 
