@@ -193,24 +193,8 @@ impl Glu {
                             *v = f64::from(fs[c * n + y * w + (x0 + l).min(w - 1)]);
                         }
                     }
-                    // Away from the coarse image's sides (no reflection) lanes 2i and 2i + 1
-                    // share a parent: candidate k of lane l is `cand[0][k] + l / 2`, the same
-                    // values read as 4 consecutive ones.
                     let inner = x0 >= 2 && x0 / 2 + LANES / 2 < cw;
-                    for (k, uk) in u.iter_mut().enumerate() {
-                        for ((c, uc), tc) in uk[..nc].iter_mut().enumerate().zip(&t) {
-                            if inner {
-                                let near = &cs[c * cn + cand[0][k]..][..LANES / 2];
-                                for (l, v) in uc.iter_mut().enumerate() {
-                                    *v = tc[l] - f64::from(near[l / 2]);
-                                }
-                            } else {
-                                for (l, v) in uc.iter_mut().enumerate() {
-                                    *v = tc[l] - f64::from(cs[c * cn + cand[l][k]]);
-                                }
-                            }
-                        }
-                    }
+                    differences(&mut u, &t, (cs, cn), &cand, nc, inner);
                     let (pairs, wgt, err) = best_pairs(&u, nc, &mut g);
                     for l in (0..LANES).filter(|&l| todo[l]) {
                         let [ia, ib] = pairs[l].map(|k| cand[l][usize::from(k)] as u32);
@@ -461,6 +445,39 @@ fn box_path_y<const A: usize, const B: usize, const C: usize, const D: usize>(
 
 /// Fine pixels fitted together, one per lane (f64: one AVX-512 register, two AVX2 ones).
 const LANES: usize = 8;
+
+/// `u[k][c][l] = t[c][l] - J_c[cand[l][k]]` for the first `nc` channels, `J` the coarse guide
+/// (`coarse`: its values and plane size). With `inner` (the lanes away from the coarse image's
+/// sides, no reflection), lanes 2i and 2i + 1 share a parent: candidate k of lane l is
+/// `cand[0][k] + l / 2`, the same values read as 4 consecutive ones. Compiled for AVX-512 and
+/// AVX2 as well (the refit's closure itself is compiled for the baseline CPU).
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma"
+))]
+fn differences(
+    u: &mut [[[f64; LANES]; 9]; 9],
+    t: &[[f64; LANES]; 9],
+    (cs, cn): (&[f32], usize),
+    cand: &[[usize; 9]; LANES],
+    nc: usize,
+    inner: bool,
+) {
+    for (k, uk) in u.iter_mut().enumerate() {
+        for ((c, uc), tc) in uk[..nc].iter_mut().enumerate().zip(t) {
+            if inner {
+                let near = &cs[c * cn + cand[0][k]..][..LANES / 2];
+                for (l, v) in uc.iter_mut().enumerate() {
+                    *v = tc[l] - f64::from(near[l / 2]);
+                }
+            } else {
+                for (l, v) in uc.iter_mut().enumerate() {
+                    *v = tc[l] - f64::from(cs[c * cn + cand[l][k]]);
+                }
+            }
+        }
+    }
+}
 
 /// The best of the 36 pairs for each lane, from its differences `u[k][c][l] = t_c - J_c[cand
 /// k]` (the first `nc` channels): per lane the pair `(a, b)` as indices into the 9 candidates,
