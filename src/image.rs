@@ -294,6 +294,17 @@ pub(crate) fn try_vec<T: Clone>(len: usize, value: T) -> Result<Vec<T>> {
     Ok(v)
 }
 
+/// `len` zeros from a zeroed allocation (large ones are fresh pages from the system, already
+/// zero: no fill), or [`Error::OutOfMemory`]; for buffers of an image's size.
+pub(crate) fn try_zeroed_vec<T: bytemuck::Zeroable>(len: usize) -> Result<Vec<T>> {
+    bytemuck::allocation::try_zeroed_vec(len).map_err(|()| {
+        Error::OutOfMemory(format!(
+            "cannot allocate {} MiB",
+            (len as u128 * std::mem::size_of::<T>() as u128) >> 20
+        ))
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

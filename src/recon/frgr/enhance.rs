@@ -27,7 +27,7 @@
 use rayon::prelude::*;
 
 use crate::error::Result;
-use crate::image::{try_vec, Image};
+use crate::image::{try_vec, try_zeroed_vec, Image};
 use crate::progress::Progress;
 
 mod chebyshev;
@@ -81,10 +81,10 @@ impl EnhanceWeights {
         let mut wts = EnhanceWeights {
             w,
             h,
-            mx: try_vec(n, 0.0)?,
-            my: try_vec(n, 0.0)?,
-            sx: try_vec(n, 0.0)?,
-            sy: try_vec(n, 0.0)?,
+            mx: try_zeroed_vec(n)?,
+            my: try_zeroed_vec(n)?,
+            sx: try_zeroed_vec(n)?,
+            sy: try_zeroed_vec(n)?,
         };
         wts.mx
             .par_chunks_mut(w)
@@ -257,7 +257,7 @@ pub(crate) struct Sweeper {
 /// against Gershgorin's 40 (the 7 others, on the studio, dusk and sunsky frames, take every step).
 fn edge_bound(w: usize, h: usize, ax: &[f32], ay: &[f32]) -> Result<f64> {
     let n = w * h;
-    let mut d = try_vec(n, 0.0f64)?;
+    let mut d = try_zeroed_vec::<f64>(n)?;
     d.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         let k = y * w;
         for (x, d) in row.iter_mut().enumerate() {
@@ -695,9 +695,9 @@ pub(crate) fn enhance_or_stop(
     let start = guide.as_slice();
     // `out` holds the guide until the end (what a cancel returns).
     let mut out = guide.try_clone()?;
-    let mut cur = try_vec(start.len(), 0.0f32)?;
+    let mut cur = try_zeroed_vec(start.len())?;
     cur.copy_from_slice(start);
-    let mut next = try_vec(start.len(), 0.0f32)?;
+    let mut next = try_zeroed_vec::<f32>(start.len())?;
     let mut step = 1e-4f32;
     let sweeper = Sweeper::new(gx, gy, wt)?;
     let loss_start = sweeper.loss(start)?;

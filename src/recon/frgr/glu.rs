@@ -29,7 +29,7 @@ use rayon::prelude::*;
 
 use super::util::reflect;
 use crate::error::Result;
-use crate::image::{try_vec, Image};
+use crate::image::{try_vec, try_zeroed_vec, Image};
 use crate::progress::Progress;
 
 /// Fit error beyond which a block is point-sampled.
@@ -160,7 +160,7 @@ impl Glu {
         let nc = j.channels();
         let (fs, cs) = (j.as_slice(), coarse.as_slice());
         let (n, cn) = (w * h, cw * ch);
-        let mut errors = try_vec(n, 0.0f32)?;
+        let mut errors = try_zeroed_vec::<f32>(n)?;
         let mut fit = std::mem::take(&mut self.fit);
         if fit.len() != n {
             fit = try_vec(n, (0, 0, 0.0))?;

@@ -40,7 +40,7 @@ use rayon::prelude::*;
 use super::fastmath::{exp_nonpositive, fused, madd, max, min};
 use super::util::{reflect, PaddedRows};
 use crate::error::Result;
-use crate::image::{try_vec, Image};
+use crate::image::{try_zeroed_vec, Image};
 
 /// Radius of the prefilter's window (a disc).
 pub(crate) const RADIUS: usize = 4;
@@ -166,7 +166,7 @@ pub(crate) fn prefilter(f: &Image, v: &Image) -> Result<Image> {
     let vpad = PaddedRows::new(v, RADIUS)?;
     let taps = taps();
     // Per row: the 3 channels' sums, then the weights' sum and `inv`.
-    let mut rows = try_vec(h * 5 * w, 0.0f32)?;
+    let mut rows = try_zeroed_vec::<f32>(h * 5 * w)?;
     rows.par_chunks_mut(5 * w).enumerate().for_each(|(y, row)| {
         let (n0, rest) = row.split_at_mut(w);
         let (n1, rest) = rest.split_at_mut(w);

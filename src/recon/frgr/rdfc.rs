@@ -44,7 +44,7 @@ use rayon::prelude::*;
 use super::fastmath::{exp_nonpositive, fused, madd, max, min};
 use super::util::{reflect, PaddedRows};
 use crate::error::Result;
-use crate::image::{try_vec, Image};
+use crate::image::{try_vec, try_zeroed_vec, Image};
 use crate::progress::Progress;
 
 /// One candidate filter: patch radius `f` and colour bandwidth (`None`: colour term off).
@@ -85,7 +85,7 @@ impl<'a> Feature<'a> {
         let ch = img.channels();
         let n = w * h;
         let s = img.as_slice();
-        let mut norm = try_vec(n, 0.0f32)?;
+        let mut norm = try_zeroed_vec::<f32>(n)?;
         if n == 0 {
             return Ok(Feature { img, norm });
         }
@@ -870,25 +870,33 @@ pub(crate) fn nlm_candidates(
         .collect::<Result<_>>()?;
     let (m, dch) = (candidates.len(), data.channels());
     let mut out: Vec<(Image, Vec<f32>)> = (0..m)
-        .map(|_| Ok((Image::try_zeros(dch, w, h)?, try_vec(n, 0.0f32)?)))
+        .map(|_| Ok((Image::try_zeros(dch, w, h)?, try_zeroed_vec(n)?)))
         .collect::<Result<_>>()?;
-    for (&((x0, x1), (y0, y1)), (num, ratio)) in tiles.iter().zip(&results) {
-        if num.is_empty() {
-            continue; // skipped after a cancel
-        }
-        let (tw, tn) = (x1 - x0, (x1 - x0) * (y1 - y0));
-        for (k, (img, rat)) in out.iter_mut().enumerate() {
-            let o = img.as_mut_slice();
-            for (t, y) in (y0..y1).enumerate() {
-                let dst = y * w + x0;
-                rat[dst..dst + tw].copy_from_slice(&ratio[k * tn + t * tw..][..tw]);
-                for ch in 0..dch {
-                    let src = &num[(k * dch + ch) * tn + t * tw..][..tw];
-                    o[ch * n + dst..ch * n + dst + tw].copy_from_slice(src);
-                }
-            }
+    // The tiles' results into each candidate's planes (its ratio, then its channels), the
+    // planes in parallel.
+    let mut planes: Vec<(usize, Option<usize>, &mut [f32])> = Vec::new();
+    for (k, (img, rat)) in out.iter_mut().enumerate() {
+        planes.push((k, None, rat.as_mut_slice()));
+        if n > 0 {
+            let channels = img.as_mut_slice().chunks_exact_mut(n).enumerate();
+            planes.extend(channels.map(|(ch, p)| (k, Some(ch), p)));
         }
     }
+    planes.into_par_iter().for_each(|(k, ch, plane)| {
+        for (&((x0, x1), (y0, y1)), (num, ratio)) in tiles.iter().zip(&results) {
+            if num.is_empty() {
+                continue; // skipped after a cancel
+            }
+            let (tw, tn) = (x1 - x0, (x1 - x0) * (y1 - y0));
+            for (t, y) in (y0..y1).enumerate() {
+                let src = match ch {
+                    None => &ratio[k * tn + t * tw..][..tw],
+                    Some(ch) => &num[(k * dch + ch) * tn + t * tw..][..tw],
+                };
+                plane[y * w + x0..][..tw].copy_from_slice(src);
+            }
+        }
+    });
     Ok(out)
 }
 
@@ -942,7 +950,7 @@ fn rdfc_with(
     }
     // SURE per candidate, smoothed by a 3 x 3 box.
     let (c, v) = (colour.as_slice(), var.as_slice());
-    let (mut raw, mut tmp) = (try_vec(n, 0.0f32)?, Vec::new());
+    let (mut raw, mut tmp) = (try_zeroed_vec::<f32>(n)?, Vec::new());
     let sure: Vec<Vec<f32>> = filtered
         .iter()
         .map(|(f, ratio)| {
@@ -969,7 +977,7 @@ fn rdfc_with(
     let m = filtered.len();
     // Per pixel the candidate of least SURE (the first of equals, as `min_by`), one-hot.
     const _: () = assert!(CANDIDATES.len() <= 256, "candidate indices are u8");
-    let mut best = try_vec(n, 0u8)?;
+    let mut best = try_zeroed_vec::<u8>(n)?;
     best.par_chunks_mut(w).enumerate().for_each(|(y, best)| {
         let row = y * w..(y + 1) * w;
         for (k, sk) in sure.iter().enumerate().skip(1) {

@@ -3,7 +3,7 @@
 use rayon::prelude::*;
 
 use crate::error::Result;
-use crate::image::{try_vec, Image};
+use crate::image::{try_zeroed_vec, Image};
 pub(crate) use crate::recon::ops::reflect;
 
 /// Rec. 709 luminance weights.
@@ -25,7 +25,7 @@ impl PaddedRows {
         let (w, h) = img.size();
         let stride = w + 2 * pad;
         let s = img.as_slice();
-        let mut data = try_vec(img.channels() * h * stride, 0.0)?;
+        let mut data = try_zeroed_vec(img.channels() * h * stride)?;
         data.par_chunks_mut(stride)
             .enumerate()
             .for_each(|(row, out)| {
