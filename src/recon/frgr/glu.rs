@@ -211,7 +211,7 @@ impl Glu {
     pub fn downsample(&self, img: &Image, variance: bool) -> Result<Image> {
         let (cw, ch) = self.coarse;
         let (w, h) = self.fine;
-        debug_assert!(img.size() == self.fine);
+        assert_eq!(img.size(), self.fine, "GLU downsamples its fine size");
         let fs = img.as_slice();
         Image::try_par_from_rows(img.channels(), cw, ch, |c, y, row| {
             // The block's two fine rows.
@@ -250,7 +250,10 @@ impl Glu {
     pub fn downsample_gradients(&self, dx: &Image, dy: &Image) -> Result<(Image, Image)> {
         let (cw, ch) = self.coarse;
         let (w, h) = self.fine;
-        debug_assert!(dx.size() == self.fine && dy.size() == self.fine);
+        assert!(
+            dx.size() == self.fine && dy.size() == self.fine,
+            "GLU downsamples gradients of its fine size"
+        );
         let (dxs, dys, n) = (dx.as_slice(), dy.as_slice(), w * h);
         // The path from `s` to `t` in the channel plane at offset `o`: along `s`'s row, then
         // `t`'s column (sums in that order, which the tests' oracle repeats).

@@ -939,6 +939,9 @@ fn rdfc_with(
 ) -> Result<Image> {
     let (w, h) = colour.size();
     let n = w * h;
+    if n == 0 {
+        return colour.try_clone(); // the row passes below chunk by the width
+    }
     let features: Vec<Feature> = albedo
         .into_iter()
         .chain(normal)
