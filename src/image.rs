@@ -36,8 +36,7 @@ impl Image {
         // A zeroed allocation, not a fill: large ones get fresh pages from the system, already
         // zero, which the threads that first write them fault in (filled here, serially, a
         // 22-channel 720p bundle's 81 MB of planes cost the CLI's read a fifth of its time).
-        let data = bytemuck::allocation::try_zeroed_vec(len)
-            .map_err(|()| too_large(channels, width, height))?;
+        let data = try_zeroed_vec(len).map_err(|_| too_large(channels, width, height))?;
         Ok(Image {
             planes: Array3::from_shape_vec((channels, height, width), data)
                 .expect("the length is the shape's"),
@@ -108,28 +107,27 @@ impl Image {
         f: impl Fn(usize, usize, &mut [f32]) + Sync,
     ) -> Result<Self> {
         let mut img = Image::try_zeros(channels, width, height)?;
-        if width > 0 {
-            img.as_mut_slice()
-                .par_chunks_mut(width)
-                .enumerate()
-                .for_each(|(r, row)| f(r / height, r % height, row));
-        }
+        img.par_rows(f);
         Ok(img)
     }
 
     /// Sets every value to `f((channel, x, y))`, rows in parallel.
     fn par_fill(&mut self, f: impl Fn((usize, usize, usize)) -> f32 + Sync) {
+        self.par_rows(|c, y, row| {
+            for (x, v) in row.iter_mut().enumerate() {
+                *v = f((c, x, y));
+            }
+        });
+    }
+
+    /// Calls `f(channel, y, row)` on every row, rows in parallel.
+    fn par_rows(&mut self, f: impl Fn(usize, usize, &mut [f32]) + Sync) {
         let (width, height) = self.size();
         if width > 0 {
             self.as_mut_slice()
                 .par_chunks_mut(width)
                 .enumerate()
-                .for_each(|(r, row)| {
-                    let (c, y) = (r / height, r % height);
-                    for (x, v) in row.iter_mut().enumerate() {
-                        *v = f((c, x, y));
-                    }
-                });
+                .for_each(|(r, row)| f(r / height, r % height, row));
         }
     }
 
