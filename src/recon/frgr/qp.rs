@@ -150,9 +150,8 @@ fn filter_rows<const K: usize>(
 /// Filters image rows `band * BAND ..` (at most [`BAND`] of them); returns per row colour then
 /// variance, channel by channel, and the pixels skipped. Compiled for AVX-512 and AVX2 too,
 /// picked at run time: the whole solver is inlined into it, so its `F32x` arithmetic becomes
-/// 512-bit instructions (one register per value) or 256-bit ones (two). AVX-512 pays since the
-/// solver's chains are a third as long (`simplex::dot3`) and its 32 registers hold `s`. Rust
-/// never contracts `a * b + c` on its own; the `madd`s fuse in both versions (they have FMA),
+/// 512-bit instructions (two registers per value) or 256-bit ones (four): independent chains
+/// that hide the latency of the solver's dependent steps (see [`LANES`]). Rust never contracts `a * b + c` on its own; the `madd`s fuse in both versions (they have FMA),
 /// so the two compute the same bits; the baseline version does not fuse.
 #[multiversion::multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",

@@ -1,15 +1,18 @@
 //! [`LANES`] `f32` lanes with elementwise operators, written so that LLVM's vectorisers turn
-//! each into SIMD instructions (two AVX2 registers, or four SSE ones on baseline x86-64) with
-//! no `unsafe` and no nightly `std::simd`. Every operation is the scalar IEEE operation applied
-//! per lane, so a lane computes bit for bit what scalar code would.
+//! each into SIMD instructions (two AVX-512 registers, four AVX2 ones, or eight SSE ones on
+//! baseline x86-64) with no `unsafe` and no nightly `std::simd`. Every operation is the scalar
+//! IEEE operation applied per lane, so a lane computes bit for bit what scalar code would.
 
 use std::ops::{Add, BitAnd, Div, Mul, Neg, Sub};
 
-/// Lanes per vector (the arithmetic below is spelt out for 16). Sixteen, not the eight of one
-/// AVX2 register: the solver's iteration is a chain of dependent sums, so two registers per
-/// value keep two independent chains in flight (faster than eight). With AVX-512 one register
-/// holds a value; the solver splits its sums into three chains instead (`simplex::dot3`).
-pub(crate) const LANES: usize = 16;
+/// Lanes per vector (the arithmetic below is spelt out for 32). The solver's iteration is a
+/// chain of dependent operations (a division among them) that the lanes of a group share, so
+/// what sets its speed is how many independent chains are in flight: 32 lanes are two chains
+/// of AVX-512 registers or four of AVX2 ones. Measured on an AMD Zen 4 (fifty-second session,
+/// `docs/benchmarks.md`): 16 lanes (one AVX-512 register) took 20-25 % longer, 64 no less
+/// than 32; with AVX2 code on the same CPU, 32 lanes were at least as fast as 16. The lanes
+/// never mix, so the count changes no pixel's bits.
+pub(crate) const LANES: usize = 32;
 
 /// [`LANES`] `f32` lanes.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -52,6 +55,22 @@ F32x([
                     a[13] $op b[13],
                     a[14] $op b[14],
                     a[15] $op b[15],
+                    a[16] $op b[16],
+                    a[17] $op b[17],
+                    a[18] $op b[18],
+                    a[19] $op b[19],
+                    a[20] $op b[20],
+                    a[21] $op b[21],
+                    a[22] $op b[22],
+                    a[23] $op b[23],
+                    a[24] $op b[24],
+                    a[25] $op b[25],
+                    a[26] $op b[26],
+                    a[27] $op b[27],
+                    a[28] $op b[28],
+                    a[29] $op b[29],
+                    a[30] $op b[30],
+                    a[31] $op b[31],
                 ])
             }
         }
@@ -118,6 +137,22 @@ impl F32x {
             x[13].mul_add(a[13], b[13]),
             x[14].mul_add(a[14], b[14]),
             x[15].mul_add(a[15], b[15]),
+            x[16].mul_add(a[16], b[16]),
+            x[17].mul_add(a[17], b[17]),
+            x[18].mul_add(a[18], b[18]),
+            x[19].mul_add(a[19], b[19]),
+            x[20].mul_add(a[20], b[20]),
+            x[21].mul_add(a[21], b[21]),
+            x[22].mul_add(a[22], b[22]),
+            x[23].mul_add(a[23], b[23]),
+            x[24].mul_add(a[24], b[24]),
+            x[25].mul_add(a[25], b[25]),
+            x[26].mul_add(a[26], b[26]),
+            x[27].mul_add(a[27], b[27]),
+            x[28].mul_add(a[28], b[28]),
+            x[29].mul_add(a[29], b[29]),
+            x[30].mul_add(a[30], b[30]),
+            x[31].mul_add(a[31], b[31]),
         ])
     }
 
