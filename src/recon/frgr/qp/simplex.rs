@@ -207,13 +207,16 @@ impl<const K: usize> Simplex<'_, K> {
 }
 
 /// `w^T diag(v) w` after the step `w <- (1 - t) w + t e_i`, with `wi` the old `w_i`: the
-/// release's expression, operation for operation. Not inlined: inside the solver loop, LLVM's
-/// SLP vectoriser splits this four-factor product into scalar lanes (measured: ~250
-/// instructions per iteration instead of ~30).
-#[inline(never)]
+/// release's expression, operation for operation. Its result passes through `black_box`:
+/// otherwise, inside the solver loop, LLVM's SLP vectoriser splits this four-factor product
+/// into scalar lanes (measured: ~250 instructions per iteration instead of ~30). The barrier
+/// costs a store and a load of the result; the call it replaces (`#[inline(never)]`, compiled
+/// for the baseline CPU) cost a spill of the solver's registers and a store-forwarding stall
+/// on its 16-byte stores (measured: QP 12-15 % faster without the call, the same bits).
+#[inline(always)]
 pub(super) fn quadratic_step(svw: F32x, t: F32x, vi: F32x, wi: F32x) -> F32x {
     let keep = F32x::splat(1.0) - t;
-    keep * keep * svw + F32x::splat(2.0) * t * keep * vi * wi + t * t * vi
+    std::hint::black_box(keep * keep * svw + F32x::splat(2.0) * t * keep * vi * wi + t * t * vi)
 }
 
 /// `|s|^2`.
