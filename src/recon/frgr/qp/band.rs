@@ -20,23 +20,27 @@ pub(super) struct Padded {
 }
 
 impl Padded {
-    /// Pads rows `y0 - r .. y0 + rows + r` of `channels` planes of a `w` x `h` image given as
-    /// `f(c, pixel index)`; `cols[px]` is the image column of padded column `px`.
+    /// Pads rows `y0 - r .. y0 + rows + r` of `channels` planes of a `w` x `h` image;
+    /// `fill(c, y, row)` writes image row `y` of channel `c` (`w` values) into `row`;
+    /// `cols[px]` is the image column of padded column `px`. Row by row: the image's columns
+    /// are written once, in place, and the border columns copied from them.
     pub(super) fn new(
         channels: usize,
         (w, h): (usize, usize),
         cols: &[usize],
         r: usize,
         (y0, rows): (usize, usize),
-        f: impl Fn(usize, usize) -> f32,
+        fill: impl Fn(usize, usize, &mut [f32]),
     ) -> Result<Padded> {
         let (stride, padded_rows) = (cols.len(), rows + 2 * r);
         let mut data = try_vec(channels * padded_rows * stride, 0.0f32)?;
         for (row, out) in data.chunks_exact_mut(stride).enumerate() {
             let (c, py) = (row / padded_rows, row % padded_rows);
             let y = reflect((y0 + py) as isize - r as isize, h);
-            for (o, &x) in out.iter_mut().zip(cols) {
-                *o = f(c, y * w + x);
+            // Padded columns `r .. r + w` are the image's own (`cols[px] = px - r`).
+            fill(c, y, &mut out[r..r + w]);
+            for px in (0..r).chain(r + w..stride) {
+                out[px] = out[r + cols[px]];
             }
         }
         Ok(Padded {
@@ -46,7 +50,23 @@ impl Padded {
         })
     }
 
+    /// Pads rows of `channels` planes of `s` (plane after plane, `w * h` values each), as
+    /// [`Padded::new`].
+    pub(super) fn copy(
+        s: &[f32],
+        channels: usize,
+        (w, h): (usize, usize),
+        cols: &[usize],
+        r: usize,
+        band: (usize, usize),
+    ) -> Result<Padded> {
+        Padded::new(channels, (w, h), cols, r, band, |c, y, row| {
+            row.copy_from_slice(&s[(c * h + y) * w..][..w]);
+        })
+    }
+
     /// Padded row `py` of channel `c` (image row `y0 + py - r`) from padded column `x0`.
+    #[inline(always)]
     pub(super) fn row(&self, c: usize, py: usize, x0: usize) -> &[f32] {
         let start = c * self.plane + py * self.stride;
         &self.data[start + x0..start + self.stride]
@@ -69,24 +89,25 @@ impl Planes {
     pub(super) fn new(level: &QpLevel, cols: &[usize], band: (usize, usize)) -> Result<Planes> {
         let dims = level.img.size();
         let (n_px, r) = (dims.0 * dims.1, level.radius);
-        let plain = |img: &Image| {
-            let s = img.as_slice();
-            Padded::new(3, dims, cols, r, band, |c, q| s[c * n_px + q])
-        };
+        let plain = |img: &Image| Padded::copy(img.as_slice(), 3, dims, cols, r, band);
         let var = level.var.as_slice();
         let up_var = level.up.map(|(_, v)| v.as_slice());
+        let w = dims.0;
         Ok(Planes {
             img: plain(level.img)?,
             var: plain(level.var)?,
-            v: Padded::new(1, dims, cols, r, band, |_, q| {
-                let mut vq = 0.0;
-                for c in 0..3 {
-                    vq += var[c * n_px + q].max(0.0);
-                    if let Some(uv) = up_var {
-                        vq += uv[c * n_px + q].max(0.0);
+            v: Padded::new(1, dims, cols, r, band, |_, y, row| {
+                for (x, vq) in row.iter_mut().enumerate() {
+                    let q = y * w + x;
+                    let mut sum = 0.0;
+                    for c in 0..3 {
+                        sum += var[c * n_px + q].max(0.0);
+                        if let Some(uv) = up_var {
+                            sum += uv[c * n_px + q].max(0.0);
+                        }
                     }
+                    *vq = sum;
                 }
-                vq
             })?,
             enhanced: plain(level.enhanced)?,
             albedo: level.albedo.map(plain).transpose()?,

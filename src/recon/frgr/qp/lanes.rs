@@ -212,7 +212,12 @@ impl BitAnd for Mask {
 impl Mask {
     #[inline(always)]
     pub fn from_bools(b: [bool; LANES]) -> Mask {
-        Mask(b.map(|x| -i32::from(x)))
+        // A loop, not `array::map` (whose closure stays a call in the multiversioned band).
+        let mut m = Mask::default();
+        for (m, &x) in m.0.iter_mut().zip(&b) {
+            *m = -i32::from(x);
+        }
+        m
     }
 
     /// `self` and not `o`.

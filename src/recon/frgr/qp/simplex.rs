@@ -170,7 +170,11 @@ impl<const K: usize> Simplex<'_, K> {
         for wq in &mut w[..n] {
             *wq = *wq * scale;
         }
-        iters.0.map(|x| x as u32)
+        let mut counts = [0; LANES];
+        for (count, &it) in counts.iter_mut().zip(&iters.0) {
+            *count = it as u32;
+        }
+        counts
     }
 
     /// Once per sweep on the `live` lanes, in O(n + K): fold the scale in and renormalise the
