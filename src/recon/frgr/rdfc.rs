@@ -620,6 +620,12 @@ impl Nlm<'_> {
         // borders reflected), so that every patch sum is a sum of shifted slices; column `xs`
         // sits at `off`.
         let (dwp, off) = (tw + 2 * p, p - (x0 - xs));
+        // The distance rows' border columns and the columns they reflect (the same for every
+        // row and offset of the tile: found once, not per row).
+        let border: Vec<(usize, usize)> = (0..off)
+            .chain(off + dw..dwp)
+            .map(|j| (j, reflected(j, x0, p, w)))
+            .collect();
         let mut delta = [
             try_vec(dwp * (ye - ys), 0.0f32)?,
             try_vec(dwp * (ye - ys), 0.0f32)?,
@@ -682,8 +688,8 @@ impl Nlm<'_> {
                     }
                     for d in delta.iter_mut().take(group.len()) {
                         let row = &mut d[row * dwp..(row + 1) * dwp];
-                        for j in (0..off).chain(off + dw..dwp) {
-                            row[j] = row[reflected(j, x0, p, w)];
+                        for &(j, from) in &border {
+                            row[j] = row[from];
                         }
                     }
                 }
