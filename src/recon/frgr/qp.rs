@@ -50,7 +50,6 @@
 use rayon::prelude::*;
 
 use super::fastmath::fused;
-use super::util::reflect;
 use crate::error::Result;
 use crate::image::{try_vec, Image};
 use crate::progress::Progress;
@@ -114,17 +113,13 @@ fn filter_rows<const K: usize>(
     if w == 0 || h == 0 {
         return Ok((out, out_var, Skipped::default()));
     }
-    let r = level.radius;
-    let cols: Vec<usize> = (0..w + 2 * r + LANES - 1)
-        .map(|px| reflect(px as isize - r as isize, w))
-        .collect();
     let bands: Vec<(Vec<f32>, Skipped)> = (0..h.div_ceil(BAND))
         .into_par_iter()
         .map(|band| {
             if stop.stopped() {
                 Ok((Vec::new(), Skipped::default())) // copied below as no rows
             } else {
-                filter_band::<K>(level, al, &cols, band)
+                filter_band::<K>(level, al, band)
             }
         })
         .collect::<Result<_>>()?;
@@ -160,7 +155,6 @@ fn filter_rows<const K: usize>(
 fn filter_band<const K: usize>(
     level: &QpLevel,
     al: &[f32; 5],
-    cols: &[usize],
     band: usize,
 ) -> Result<(Vec<f32>, Skipped)> {
     let (w, h) = level.img.size();
@@ -168,7 +162,7 @@ fn filter_band<const K: usize>(
     let side = 2 * r + 1;
     let (img, var) = (level.img.as_slice(), level.var.as_slice());
     let (y0, rows) = (band * BAND, BAND.min(h - band * BAND));
-    let planes = Planes::new(level, cols, (y0, rows))?;
+    let planes = Planes::new(level, (y0, rows))?;
     let terms = planes.terms(level, al, K);
     let ctx = Ctx::<K> {
         w,

@@ -9,6 +9,15 @@ pub(crate) use crate::recon::ops::reflect;
 /// Rec. 709 luminance weights.
 pub(crate) const LUMA: [f32; 3] = [0.2126, 0.7152, 0.0722];
 
+/// Fills a padded row's border from its interior, reflect-101: `row[pad..pad + w]` holds an
+/// image row, and every other `row[j]` becomes that row's column `reflect(j - pad, w)` (the
+/// row may extend past `pad` on the right, as the QP's lane groups need).
+pub(crate) fn reflect_borders(row: &mut [f32], pad: usize, w: usize) {
+    for j in (0..pad).chain(pad + w..row.len()) {
+        row[j] = row[pad + reflect(j as isize - pad as isize, w)];
+    }
+}
+
 /// An image whose rows are padded left and right by `pad` columns (reflect-101), so that the
 /// column `reflect(x + dx)` of a window offset `dx` is `x + dx` of a padded row: a slice.
 pub(crate) struct PaddedRows {
@@ -29,11 +38,8 @@ impl PaddedRows {
         data.par_chunks_mut(stride)
             .enumerate()
             .for_each(|(row, out)| {
-                let src = &s[row * w..(row + 1) * w];
-                out[pad..pad + w].copy_from_slice(src);
-                for j in (0..pad).chain(pad + w..stride) {
-                    out[j] = src[reflect(j as isize - pad as isize, w)];
-                }
+                out[pad..pad + w].copy_from_slice(&s[row * w..(row + 1) * w]);
+                reflect_borders(out, pad, w);
             });
         Ok(PaddedRows {
             data,

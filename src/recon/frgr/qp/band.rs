@@ -1,11 +1,11 @@
 //! Bands of rows padded with the reflect-101 border, so that the windows of a lane group are
 //! plain slices, and the bias terms read from them.
 
-use super::lanes::F32x;
+use super::lanes::{F32x, LANES};
 use super::level::QpLevel;
 use crate::error::Result;
 use crate::image::{try_vec, Image};
-use crate::recon::frgr::util::reflect;
+use crate::recon::frgr::util::{reflect, reflect_borders};
 
 /// Image rows per band. A band pads its own rows (plus the windows' halo) of every plane it
 /// reads, so that the padded copies stay small whatever the frame size.
@@ -21,27 +21,22 @@ pub(super) struct Padded {
 
 impl Padded {
     /// Pads rows `y0 - r .. y0 + rows + r` of `channels` planes of a `w` x `h` image;
-    /// `fill(c, y, row)` writes image row `y` of channel `c` (`w` values) into `row`;
-    /// `cols[px]` is the image column of padded column `px`. Row by row: the image's columns
-    /// are written once, in place, and the border columns copied from them.
+    /// `fill(c, y, row)` writes image row `y` of channel `c` (`w` values) into `row`. Row by
+    /// row: the image's columns are written once, in place, and the border copied from them.
     pub(super) fn new(
         channels: usize,
         (w, h): (usize, usize),
-        cols: &[usize],
         r: usize,
         (y0, rows): (usize, usize),
         fill: impl Fn(usize, usize, &mut [f32]),
     ) -> Result<Padded> {
-        let (stride, padded_rows) = (cols.len(), rows + 2 * r);
+        let (stride, padded_rows) = (w + 2 * r + LANES - 1, rows + 2 * r);
         let mut data = try_vec(channels * padded_rows * stride, 0.0f32)?;
         for (row, out) in data.chunks_exact_mut(stride).enumerate() {
             let (c, py) = (row / padded_rows, row % padded_rows);
             let y = reflect((y0 + py) as isize - r as isize, h);
-            // Padded columns `r .. r + w` are the image's own (`cols[px] = px - r`).
             fill(c, y, &mut out[r..r + w]);
-            for px in (0..r).chain(r + w..stride) {
-                out[px] = out[r + cols[px]];
-            }
+            reflect_borders(out, r, w);
         }
         Ok(Padded {
             data,
@@ -56,11 +51,10 @@ impl Padded {
         s: &[f32],
         channels: usize,
         (w, h): (usize, usize),
-        cols: &[usize],
         r: usize,
         band: (usize, usize),
     ) -> Result<Padded> {
-        Padded::new(channels, (w, h), cols, r, band, |c, y, row| {
+        Padded::new(channels, (w, h), r, band, |c, y, row| {
             row.copy_from_slice(&s[(c * h + y) * w..][..w]);
         })
     }
@@ -86,17 +80,17 @@ pub(super) struct Planes {
 }
 
 impl Planes {
-    pub(super) fn new(level: &QpLevel, cols: &[usize], band: (usize, usize)) -> Result<Planes> {
+    pub(super) fn new(level: &QpLevel, band: (usize, usize)) -> Result<Planes> {
         let dims = level.img.size();
         let (n_px, r) = (dims.0 * dims.1, level.radius);
-        let plain = |img: &Image| Padded::copy(img.as_slice(), 3, dims, cols, r, band);
+        let plain = |img: &Image| Padded::copy(img.as_slice(), 3, dims, r, band);
         let var = level.var.as_slice();
         let up_var = level.up.map(|(_, v)| v.as_slice());
         let w = dims.0;
         Ok(Planes {
             img: plain(level.img)?,
             var: plain(level.var)?,
-            v: Padded::new(1, dims, cols, r, band, |_, y, row| {
+            v: Padded::new(1, dims, r, band, |_, y, row| {
                 for (x, vq) in row.iter_mut().enumerate() {
                     let q = y * w + x;
                     let mut sum = 0.0;
