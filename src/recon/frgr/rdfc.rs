@@ -224,6 +224,15 @@ fn colour_distance_row(
     }
 }
 
+/// The first `n` values of each of three rows. Written out: `[T; N]::map` in a kernel's
+/// prologue is a call (with one more per element to the closure) that the multiversioned
+/// copies do not inline, and the kernels run once a row and window offset.
+#[inline(always)]
+fn cut3(rows: [&[f32]; 3], n: usize) -> [&[f32]; 3] {
+    let [a, b, c] = rows;
+    [&a[..n], &b[..n], &c[..n]]
+}
+
 /// One channel's term of [`colour_distance_row`].
 #[inline(always)]
 fn colour_term<const F: bool>(a: f32, b: f32, va: f32, vb: f32) -> f32 {
@@ -249,9 +258,12 @@ fn colour_distance_pair(
     const F: bool = fused!();
     let n = out0.len();
     let out1 = &mut out1[..n];
-    let (cp, vp) = (own.0.map(|c| &c[..n]), own.1.map(|c| &c[..n]));
-    let cq = other.map(|o| o.0.map(|c| &c[..n]));
-    let vq = other.map(|o| o.1.map(|c| &c[..n]));
+    let (cp, vp) = (cut3(own.0, n), cut3(own.1, n));
+    let [o0, o1] = other;
+    let (cq, vq) = (
+        [cut3(o0.0, n), cut3(o1.0, n)],
+        [cut3(o0.1, n), cut3(o1.1, n)],
+    );
     for i in 0..n {
         let (c0, c1, c2) = (cp[0][i], cp[1][i], cp[2][i]);
         let (v0, v1, v2) = (vp[0][i], vp[1][i], vp[2][i]);
@@ -325,9 +337,10 @@ fn feature_distance_pair(
     const F: bool = fused!();
     let n = fd0.len();
     let fd1 = &mut fd1[..n];
-    let p = p.map(|f| f.map(|c| &c[..n]));
-    let q = q.map(|s| s.map(|f| f.map(|c| &c[..n])));
-    let inv = inv.map(|v| &v[..n]);
+    let p = [cut3(p[0], n), cut3(p[1], n)];
+    let [[qa0, qb0], [qa1, qb1]] = q;
+    let q = [[cut3(qa0, n), cut3(qb0, n)], [cut3(qa1, n), cut3(qb1, n)]];
+    let inv = [&inv[0][..n], &inv[1][..n]];
     for i in 0..n {
         let pa = [p[0][0][i], p[0][1][i], p[0][2][i]];
         let pb = [p[1][0][i], p[1][1][i], p[1][2][i]];
