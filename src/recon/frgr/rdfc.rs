@@ -42,7 +42,7 @@
 use rayon::prelude::*;
 
 use super::fastmath::{exp_nonpositive, fused, madd, max, min};
-use super::util::{reflect, PaddedRows};
+use super::util::{reflect, reflect_borders, PaddedRows};
 use crate::error::Result;
 use crate::image::{try_vec, try_zeroed_vec, Image};
 use crate::progress::Progress;
@@ -633,12 +633,6 @@ impl Nlm<'_> {
         // borders reflected), so that every patch sum is a sum of shifted slices; column `xs`
         // sits at `off`.
         let (dwp, off) = (tw + 2 * p, p - (x0 - xs));
-        // The distance rows' border columns and the columns they reflect (the same for every
-        // row and offset of the tile: found once, not per row).
-        let border: Vec<(usize, usize)> = (0..off)
-            .chain(off + dw..dwp)
-            .map(|j| (j, reflected(j, x0, p, w)))
-            .collect();
         let mut delta = [
             try_vec(dwp * (ye - ys), 0.0f32)?,
             try_vec(dwp * (ye - ys), 0.0f32)?,
@@ -699,11 +693,11 @@ impl Nlm<'_> {
                             colour_distance_row(&mut d[at.clone()], own.0, q.0, own.1, q.1);
                         }
                     }
+                    // The border columns, only where the tile meets the image's edge: there
+                    // reflecting in the row's `dw` columns is reflecting in the image's (all
+                    // of them when the tile spans the width, else more than `p`).
                     for d in delta.iter_mut().take(group.len()) {
-                        let row = &mut d[row * dwp..(row + 1) * dwp];
-                        for &(j, from) in &border {
-                            row[j] = row[from];
-                        }
+                        reflect_borders(&mut d[row * dwp..(row + 1) * dwp], off, dw);
                     }
                 }
                 for ((delta, hsum), vsum) in
