@@ -8,7 +8,8 @@
 # Needs the validation set and the 720p frames (docs/data.md, docs/benchmarks.md say how to
 # render them) under $GDRECON_DATA (default ~/.cache/gdrecon/data), and ONNX Runtime for
 # gradnet (`bash onnx/setup.sh` once; onnx/env.sh is sourced here). Builds the release CLI in
-# $CARGO_TARGET_DIR (default target/). Takes about 8 minutes on 2 cores; run it on an
+# $CARGO_TARGET_DIR (default target/). Takes about 25 minutes on 2 cores (23 min in the fifty-fifth
+# session, ten validation families); run it on an
 # otherwise idle machine (summary.md records the load average). Re-running overwrites every
 # output; nothing else is touched.
 #
@@ -27,10 +28,13 @@ shopt -s nullglob
 val=("$data"/val/*_*spp.exr)
 test=("$data"/test/*_*spp.exr)
 hd=("$data"/bench720/cornell_16spp.exr "$data"/bench720/sunsky_16spp.exr)
+# Three spp per family: validation has ten families (chandelier and conservatory joined it in the
+# fifty-fifth session), test eight.
+declare -A families=([val]=10 [test]=8)
 for split in val test; do
   declare -n set="$split"
-  if [ "${#set[@]}" -ne 24 ]; then
-    echo "bench.sh: expected 24 bundles in $data/$split, found ${#set[@]} (bash onnx/data/make_sets.sh $split)" >&2
+  if [ "${#set[@]}" -ne $((3 * families[$split])) ]; then
+    echo "bench.sh: expected $((3 * families[$split])) bundles in $data/$split, found ${#set[@]} (bash onnx/data/make_sets.sh $split)" >&2
     exit 1
   fi
 done
@@ -62,7 +66,7 @@ for split in val test; do
     --settings l2,l1,l1:fast,frgr,gradnet,gradnet:range_limit=0,prior,l1:prior,l2:data=prior,frgr:guide=prior,combiner,auto \
     --baselines --against-oidn --runs 3 \
     --warmup 1 "${threads[@]}" --out-dir "$out/$split" \
-    --title "gdrecon bench: $split split (320 x 180, 8 families, 4 / 16 / 64 spp, 4096 spp references)"
+    --title "gdrecon bench: $split split (320 x 180, ${families[$split]} families, 4 / 16 / 64 spp, 4096 spp references)"
 done
 cp "$out/val/summary.md" "$out/summary.md"
 

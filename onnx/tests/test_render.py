@@ -171,7 +171,10 @@ def test_splits_are_disjoint_and_keep_the_validation_seeds():
     tr, va, te = (set(scenes.SPLITS[k]) for k in ("train", "val", "test"))
     assert not (tr & va) and not (tr & te) and not (va & te)
     assert tr | va | te == set(scenes.SCENES)
-    assert len(te) == 8 and len(va) == 8 and len(tr) == 6  # vitrine, then aquarium joined training
+    # vitrine, then aquarium joined training; chandelier and conservatory (fine detail) validation
+    assert len(te) == 8 and len(va) == 10 and len(tr) == 6
+    # appended, so that every family rendered before keeps its index (its frame seeds)
+    assert list(scenes.SCENES)[-2:] == ["chandelier", "conservatory"]
     # frame seeds hash a family's index in SCENES: the six original validation families keep 0..5
     assert list(scenes.SCENES)[:6] == ["cornell", "metals", "glass", "textures", "indirect", "sunsky"]
     assert scenes.families("val") == scenes.SPLITS["val"]

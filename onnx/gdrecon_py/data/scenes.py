@@ -979,6 +979,104 @@ def garden(W, H, rng=None):
 
 
 # --------------------------------------------------------------------------------------------
+# validation additions (fine detail: small emitters, thin geometry, leaves), so that tuning sees
+# what `lamps`, `thin` and `foliage` hold for test (the fifty-fifth session: two choices tuned on
+# validation lost exactly there)
+
+
+def chandelier(W, H, rng=None):
+    """Small emitters and thin geometry in a dim room: a chandelier of a dozen small bulbs
+    (radiance 150-600) on thin brass arms and chains, hung with small glossy beads, over a dark
+    dining table with metal cups; the room lit by the chandelier and a faint window glow."""
+    s = base_dict(integrator_depth=8)
+    s["sensor"] = sensor(orbit(rng, [0.5, 1.35, 2.2], [0, 1.5, -0.2]), [0, 1.5, -0.2], u(rng, 62.0, 55, 68))
+    wall = diffuse(colour(rng, [0.32, 0.26, 0.2], sat=(0.1, 0.5), val=(0.15, 0.4)))
+    s["floor"] = rect([0, 0, 0], [0, 1, 0], 5, 5, diffuse(colour(rng, [0.12, 0.08, 0.05], val=(0.05, 0.2))))
+    s["back"] = rect([0, 1.5, -2.0], [0, 0, 1], 5, 1.5, wall)
+    s["left"] = rect([-2.6, 1.5, 0], [1, 0, 0], 3, 1.5, wall)
+    s["ceiling"] = rect([0, 3.0, 0], [0, -1, 0], 5, 5, diffuse([0.5, 0.48, 0.45]))
+    s["table"] = box([0, 0.7, -0.2], [1.1, 0.03, 0.55], {"type": "roughplastic", "alpha": u(rng, 0.1, 0.04, 0.2),
+                     "diffuse_reflectance": rgb(colour(rng, [0.18, 0.09, 0.05], val=(0.05, 0.25)))})
+    for i, x in enumerate((-1.0, 1.0)):
+        for j, z in enumerate((-0.7, 0.3)):
+            s[f"leg{i}{j}"] = cyl([x, 0, z], [x, 0.67, z], 0.025, diffuse([0.1, 0.07, 0.05]))
+    brass = {"type": "roughconductor", "material": choice(rng, "Au", METALS), "alpha": u(rng, 0.2, 0.1, 0.3)}
+    for i in range(3):
+        x = -0.6 + 0.6 * i + u(rng, 0, -0.1, 0.1)
+        s[f"cup{i}"] = cyl([x, 0.73, 0.05], [x, 0.85, 0.05], 0.035,
+                           twosided({"type": "roughconductor", "material": choice(rng, "Ag", METALS), "alpha": 0.12}))
+    cx, cy, cz = u(rng, 0.0, -0.2, 0.2), u(rng, 1.75, 1.65, 1.9), -0.2
+    s["stem"] = cyl([cx, cy, cz], [cx, 3.0, cz], 0.008, brass)
+    s["hub"] = sphere([cx, cy, cz], 0.05, brass)
+    n = 12
+    L = u(rng, 300.0, 150.0, 600.0)
+    bead = {"type": "roughplastic", "alpha": 0.15, "diffuse_reflectance": rgb(colour(rng, [0.6, 0.6, 0.65]))}
+    for i in range(n):
+        a = 2 * math.pi * (i + 0.5 * (i % 2)) / n
+        rr = 0.42 if i % 2 == 0 else 0.28
+        x, z = cx + rr * math.cos(a), cz + rr * math.sin(a)
+        y = cy + (0.1 if i % 2 == 0 else 0.22)
+        s[f"arm{i}"] = cyl([cx, cy, cz], [x, y - 0.02, z], 0.006, brass)
+        s[f"bulb{i}"] = lamp([x, y + 0.03, z], 0.022, tint(rng, [L, L * 0.78, L * 0.5], 0.2))
+        s[f"bead{i}"] = sphere([x, y - 0.09, z], 0.018, bead)
+        s[f"chain{i}"] = cyl([x, y - 0.02, z], [x, y - 0.07, z], 0.002, brass)
+    g = u(rng, 0.6, 0.3, 1.0)
+    s["glow"] = disk([1.9, 1.7, -1.99], [0, 0, 1], 0.25, 0.4, diffuse([0, 0, 0]), emitter=area(tint(rng, [g * 0.6, g * 0.7, g], 0.1)))
+    s["env"] = {"type": "constant", "radiance": rgb([0.002, 0.002, 0.003])}
+    return s
+
+
+def conservatory(W, H, rng=None):
+    """Leaves and thin bars against a bright window: a potted plant (alpha cut-out leaf cards)
+    and a wire plant stand in front of a window with thin glazing bars, sun through it casting
+    the bars' and the leaves' shadows on the floor, a sky of radiance about 0.4 seen through it."""
+    s = volpath_dict(8)
+    s["sensor"] = sensor(orbit(rng, [-0.8, 1.2, 3.2], [0.2, 1.0, -1.0]), [0.2, 1.0, -1.0], u(rng, 60.0, 52, 66))
+    wall = diffuse(colour(rng, [0.7, 0.68, 0.62], sat=(0, 0.3), val=(0.5, 0.85)))
+    s["floor"] = rect([0, 0, 0], [0, 1, 0], 30, 30, diffuse(colour(rng, [0.45, 0.32, 0.22], val=(0.2, 0.5))))
+    # back wall z = -2 with a window opening x in [-1.2, 1.4], y in [0.5, 2.3]
+    s["wall_l"] = rect([-2.6, 1.5, -2.0], [0, 0, 1], 1.4, 1.5, wall)
+    s["wall_r"] = rect([2.7, 1.5, -2.0], [0, 0, 1], 1.3, 1.5, wall)
+    s["wall_b"] = rect([0.1, 0.25, -2.0], [0, 0, 1], 1.3, 0.25, wall)
+    s["wall_t"] = rect([0.1, 2.65, -2.0], [0, 0, 1], 1.3, 0.35, wall)
+    s["side"] = rect([-2.5, 1.5, 0], [1, 0, 0], 4, 1.5, wall)
+    s["ceiling"] = rect([0, 3.0, 0], [0, -1, 0], 4, 4, wall)
+    bar = diffuse(colour(rng, [0.85, 0.85, 0.82], sat=(0, 0.2), val=(0.6, 0.9)))
+    for i in range(9):
+        x = -1.2 + i * 2.6 / 8
+        s[f"mullion{i}"] = cyl([x, 0.5, -2.0], [x, 2.3, -2.0], 0.008, bar)
+    for j in range(7):
+        y = 0.5 + j * 1.8 / 6
+        s[f"transom{j}"] = cyl([-1.2, y, -2.0], [1.4, y, -2.0], 0.008, bar)
+    r = np.random.default_rng(71) if rng is None else rng
+    sets = [_leaves(r, count=160, hue=h) for h in (0.3, 0.26)]
+    px, pz = u(rng, -0.2, -0.5, 0.1), u(rng, -0.9, -1.2, -0.6)
+    s["pot"] = cyl([px, 0, pz], [px, 0.35, pz], 0.2, diffuse(colour(rng, [0.55, 0.25, 0.15])))
+    s["soil"] = disk([px, 0.34, pz], [0, 1, 0], 0.2, 0.2, diffuse([0.08, 0.06, 0.04]))
+    for i in range(7):
+        c = [px + r.uniform(-0.45, 0.45), r.uniform(0.7, 1.5), pz + r.uniform(-0.35, 0.35)]
+        nrm = r.normal(size=3)
+        nrm[2] = abs(nrm[2]) + 0.4
+        s[f"leaves{i}"] = leaf_card(c, nrm, r.uniform(0.3, 0.45), sets[i % 2], rot=float(r.uniform(0, 360)))
+    # a wire plant stand: two rings on four thin legs, a small pot on top
+    sx, sz = u(rng, 1.0, 0.8, 1.3), u(rng, -1.0, -1.3, -0.7)
+    wire = diffuse([0.05, 0.05, 0.05])
+    for k in range(4):
+        a = math.pi / 4 + k * math.pi / 2
+        s[f"stand_leg{k}"] = cyl([sx + 0.22 * math.cos(a), 0, sz + 0.22 * math.sin(a)],
+                                 [sx + 0.16 * math.cos(a), 0.8, sz + 0.16 * math.sin(a)], 0.005, wire)
+    for j, (y, rad) in enumerate(((0.3, 0.2), (0.8, 0.16))):
+        for k in range(16):
+            a0, a1 = 2 * math.pi * k / 16, 2 * math.pi * (k + 1) / 16
+            s[f"ring{j}_{k}"] = cyl([sx + rad * math.cos(a0), y, sz + rad * math.sin(a0)],
+                                    [sx + rad * math.cos(a1), y, sz + rad * math.sin(a1)], 0.004, wire)
+    s["small_pot"] = cyl([sx, 0.8, sz], [sx, 0.95, sz], 0.1, diffuse(colour(rng, [0.2, 0.35, 0.55])))
+    # the sun beyond the window (towards -z), so that it shines in through it
+    s["sun"], s["sky"] = sun_and_sky(rng, u(rng, 30.0, 20.0, 45.0), u(rng, 160.0, 140.0, 215.0), u(rng, 3.0, 2.0, 4.5))
+    return s
+
+
+# --------------------------------------------------------------------------------------------
 # registry and split
 
 # The order is part of the data: render.py hashes a frame seed from a family's index here
@@ -1006,6 +1104,8 @@ SCENES = {
     "garden": garden,
     "vitrine": vitrine,
     "aquarium": aquarium,
+    "chandelier": chandelier,
+    "conservatory": conservatory,
 }
 
 # Three-way split of the scene *families* (docs/data.md):
@@ -1014,7 +1114,8 @@ SCENES = {
 #   test:  base scenes, never used to choose anything; report numbers on them once, at the end
 SPLITS = {
     "train": ["atrium", "night", "shelf", "garden", "vitrine", "aquarium"],
-    "val": ["cornell", "metals", "glass", "textures", "indirect", "sunsky", "studio", "dusk"],
+    "val": ["cornell", "metals", "glass", "textures", "indirect", "sunsky", "studio", "dusk", "chandelier",
+            "conservatory"],
     "test": ["gaproom", "lamps", "cellar", "caustics", "fabric", "courtyard", "thin", "foliage"],
 }
 # The retired training set (perturbations of the six original validation families, perturbation
