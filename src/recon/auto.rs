@@ -5,7 +5,10 @@
 //!    the prior** (preset `prior`) when the combiner cannot run (built without ONNX Runtime,
 //!    the runtime or the model not found, or the frame lacks variance, albedo or normal) or
 //!    `use_combiner` is false; taken when the frame has a `prior` layer or Open Image Denoise
-//!    can be loaded. On the validation split the combiner is 0.77 / 0.77 / 0.66x OIDN alone
+//!    can be loaded. (The notes quote the ten-family validation split of the fifty-fifth
+//!    session, `docs/bench/val/`: combiner 0.69 / 0.63 / 0.57x OIDN, L1 on the prior 0.83 /
+//!    0.78 / 0.69x, GradNet 0.54 / 0.48 / 0.70x FRGR.) On the eight-family validation split
+//!    of the twenty-first session the combiner was 0.77 / 0.77 / 0.66x OIDN alone
 //!    (geometric mean at 4 / 16 / 64 spp) with no frame above 1.03x; L1 on the prior 0.88 /
 //!    0.85 / 0.78x (worst 1.02x); both better than every method without a prior (the best of
 //!    them, GradNet, is 1.45 / 0.91 / 0.96x OIDN there). The combiner became the default in
@@ -150,7 +153,7 @@ impl AutoConfig {
         (
             MethodConfig::GradNet(self.gradnet.clone()),
             format!(
-                "gradnet ({} features; 0.53-0.75x frgr's relMSE on the validation split)",
+                "gradnet ({} features; 0.48-0.70x frgr's relMSE on the validation split)",
                 if frame.albedo().is_some() && frame.normal().is_some() && frame.depth().is_some() {
                     "with"
                 } else {
@@ -431,7 +434,7 @@ impl Reconstructor for Auto {
                 match self.combiner_blocked(frame) {
                     None => {
                         report.note(format!(
-                            "auto: {why}: combiner (0.67-0.77x Open Image Denoise alone on \
+                            "auto: {why}: combiner (0.57-0.69x Open Image Denoise alone on \
                              the validation split)"
                         ));
                         report.method = "auto -> combiner".into();
@@ -446,7 +449,7 @@ impl Reconstructor for Auto {
                         )));
                     }
                     Some(blocked) => report.note(format!(
-                        "auto: {why}; no combiner ({blocked}): l1 on the prior (0.80-0.88x Open \
+                        "auto: {why}; no combiner ({blocked}): l1 on the prior (0.69-0.83x Open \
                          Image Denoise alone on the validation split)"
                     )),
                 }
