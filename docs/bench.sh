@@ -28,9 +28,14 @@ shopt -s nullglob
 val=("$data"/val/*_*spp.exr)
 test=("$data"/test/*_*spp.exr)
 hd=("$data"/bench720/cornell_16spp.exr "$data"/bench720/sunsky_16spp.exr)
-# Three spp per family: validation has ten families (chandelier and conservatory joined it in the
-# fifty-fifth session), test eight.
-declare -A families=([val]=10 [test]=8)
+# shellcheck source=/dev/null
+source onnx/env.sh
+# Three spp per family, the families as the split lists them (scenes.SPLITS).
+declare -A families
+for split in val test; do
+  families[$split]="$("$GDRECON_PYTHON" -c \
+    "from gdrecon_py.data import scenes; print(len(scenes.SPLITS['$split']))")"
+done
 for split in val test; do
   declare -n set="$split"
   if [ "${#set[@]}" -ne $((3 * families[$split])) ]; then
@@ -45,8 +50,6 @@ for f in "${hd[@]}"; do
   fi
 done
 
-# shellcheck source=/dev/null
-source onnx/env.sh
 if [ -z "${ORT_DYLIB_PATH:-}" ]; then
   echo "bench.sh: no ONNX Runtime for gradnet: run 'bash onnx/setup.sh' first" >&2
   exit 1

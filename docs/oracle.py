@@ -11,7 +11,7 @@ block, per pixel. A learned choice can only approach these; they size the gain, 
     done
     $GDRECON_PYTHON docs/oracle.py DIR OUT combiner gradnet
 
-relMSE as `onnx/gdrecon_py/metrics.py` (per pixel, then the mean). Needs the project's venv
+relMSE from `onnx/gdrecon_py/metrics.py` (its terms per pixel, then the mean). Needs the project's venv
 (`onnx/setup.sh`; `PYTHONPATH=onnx` when gdrecon_py is not installed).
 """
 import collections
@@ -23,6 +23,7 @@ import sys
 import numpy as np
 
 from gdrecon_py.data.render import read_bundle
+from gdrecon_py.metrics import relmse_map
 
 
 def rgb(path):
@@ -31,7 +32,7 @@ def rgb(path):
 
 
 def per_pixel(img, ref):
-    return ((img.astype(np.float64) - ref) ** 2 / (ref.astype(np.float64) ** 2 + 0.01)).mean(-1)
+    return relmse_map(img, ref).mean(-1)
 
 
 def blocks(ma, mb, bs):
