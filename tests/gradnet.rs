@@ -5,7 +5,7 @@
 //! Needs ONNX Runtime 1.31 (found by the library's discovery: `bash onnx/setup.sh` installs
 //! it). Tolerances: the pipeline matches Python to 1e-4 relative (|a - b| <= 1e-4 (|b| + 1e-3)),
 //! in fp32 against the torch model, in int8 (the default precision) against onnxruntime in
-//! Python running `onnx/gradnet_int8.onnx` (the same kernels, so the same bound holds);
+//! Python running `onnx/gradnet_int8_nhwc.onnx` (the same kernels, so the same bound holds);
 //! tiled matches untiled to the same bound.
 #![cfg(all(feature = "gradnet", feature = "embed-model"))]
 
@@ -121,7 +121,7 @@ fn pipeline_matches_the_python_reference() {
 }
 
 /// `precision=int8` against `pipeline.reconstruct` with onnxruntime running
-/// `onnx/gradnet_int8.onnx` in Python (`make_fixtures --int8`); and how far int8 is from the
+/// `onnx/gradnet_int8_nhwc.onnx` in Python (`make_fixtures --int8`); and how far int8 is from the
 /// fp32 pipeline on these crops (printed; docs/gradnet.md, "Reduced precision").
 #[test]
 fn int8_pipeline_matches_onnxruntime_in_python() {
@@ -206,7 +206,7 @@ fn plans_reuse_the_context_session_and_report_what_ran() {
     assert!(report
         .notes
         .iter()
-        .any(|n| n.contains("embedded gradnet_int8.onnx")));
+        .any(|n| n.contains("embedded gradnet_int8_nhwc.onnx")));
     let mut b = Plan::new(&ctx, &config, frame.width(), frame.height()).unwrap();
     let (second, _) = b.execute(&frame, &Progress::none()).unwrap();
     assert_eq!(

@@ -89,7 +89,7 @@ def summary(rows, keys):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--models", default=f"fp32={os.path.join(ONNX_DIR, 'gradnet.onnx')},"
-                                        f"int8={os.path.join(ONNX_DIR, 'gradnet_int8.onnx')}",
+                                        f"int8={os.path.join(ONNX_DIR, 'gradnet_int8_nhwc.onnx')}",
                     help="name=path,... (the first is the reference)")
     ap.add_argument("--time", action="store_true")
     ap.add_argument("--size", default="1280x720")

@@ -18,7 +18,8 @@ export) and the numpy reference pipeline (gdrecon_py/pipeline.py):
                                 view) through pipeline.reconstruct with onnx/gradnet.onnx run by
                                 onnxruntime: steps 6b (emitters) and 7's bias limit
                                 (beyond) are exercised
-  <crop>_int8_net.npy           (--int8, no checkpoints needed) onnx/gradnet_int8.onnx run by
+  <crop>_int8_net.npy           (--int8, no checkpoints needed) onnx/gradnet_int8_nhwc.onnx (the
+                                deployed int8 graph, the one the library embeds) run by
                                 onnxruntime on <crop>_data / _grad, one channel at a time:
                                 3 x 1 x Hp x Wp
   <crop>_int8_out.npy           pipeline.reconstruct with that graph (onnxruntime): H x W x 3
@@ -62,7 +63,7 @@ def main(argv=None):
     ap.add_argument("--emitter", action="store_true",
                     help="write only the emitter fixture (onnxruntime and onnx/gradnet.onnx)")
     ap.add_argument("--int8", action="store_true",
-                    help="write only the int8 fixtures (onnxruntime and onnx/gradnet_int8.onnx)")
+                    help="write only the int8 fixtures (onnxruntime and onnx/gradnet_int8_nhwc.onnx)")
     args = ap.parse_args(argv)
     if args.emitter:
         return emitter_fixture(args.out)
@@ -119,10 +120,10 @@ def emitter_fixture(out_dir):
 
 
 def int8_fixtures(out_dir):
-    """<crop>_int8_net.npy and <crop>_int8_out.npy from onnx/gradnet_int8.onnx (onnxruntime,
+    """<crop>_int8_net.npy and <crop>_int8_out.npy from onnx/gradnet_int8_nhwc.onnx (onnxruntime,
     2 threads, batch 1 per colour channel as the Rust path runs it)."""
     from . import runtime
-    sess = runtime.session(os.path.join(REPO, "onnx", "gradnet_int8.onnx"))
+    sess = runtime.session(os.path.join(REPO, "onnx", "gradnet_int8_nhwc.onnx"))
     run = pl.ort_runner(sess)
 
     def per_channel(data, grad):

@@ -15,12 +15,20 @@ the same weights and bias); only the order of the fp32 sums differs.
 `split(model)` makes such a graph from a QDQ graph with the decoder of `export.py` (the output
 convolution applied to the phases as one 3 x 3 convolution 128 -> 4, followed by a
 DepthToSpace), checking that the phase form's weights are exactly the 3 x 3 kernel's.
+
+The graph the library runs, `onnx/gradnet_int8_nhwc.onnx` (`nhwc.py`), returns the phases in
+another layout, named by `output_layer.layout` (NHWC_PADDED): N x (h + 1) x (w + 1) x 128,
+phase (a, b) at rows a .. a + h, columns b .. b + w; `apply` reads either (`canonical`).
 """
 import numpy as np
 
 OUTPUT = "phases"
 CONV = "/out/conv/Conv"
 PREFIX = "output_layer."
+# `phases` layouts (`output_layer.layout`; absent: CANONICAL): `split`'s N x 4C x h x w, and
+# `nhwc.py`'s N x (h + 1) x (w + 1) x 4C with phase (a, b) at rows a .. a + h, columns b .. b + w
+CANONICAL = "nchw"
+NHWC_PADDED = "nhwc_padded"
 
 
 def _full_kernel(poly):
@@ -123,7 +131,9 @@ def manifest_outputs(m):
     if PREFIX + "channels" not in meta:
         return {"output": ["N", 1, "H", "W"]}
     ch = int(meta[PREFIX + "channels"])
-    return {OUTPUT: ["N", 4 * ch, "H/2", "W/2"],
+    shape = (["N", "H/2 + 1", "W/2 + 1", 4 * ch] if meta.get(PREFIX + "layout") == NHWC_PADDED
+             else ["N", 4 * ch, "H/2", "W/2"])
+    return {OUTPUT: shape,
             "output_layer": f"uint8 phases; the 3 x 3 convolution {ch} -> 1 and ReLU after them are "
                             f"in the metadata ({PREFIX}*) and applied by the caller"}
 
@@ -134,13 +144,30 @@ def read(meta):
         return None
     ch = int(meta[PREFIX + "channels"])
     w = np.array(meta[PREFIX + "weight"].split(), np.float32).reshape(ch, 3, 3)
+    layout = meta.get(PREFIX + "layout", CANONICAL)
+    if layout not in (CANONICAL, NHWC_PADDED):
+        raise ValueError(f"{PREFIX}layout {layout!r}: not {CANONICAL!r} or {NHWC_PADDED!r}")
     return {"weight": w, "bias": np.float32(meta[PREFIX + "bias"]),
-            "scale": np.float32(meta[PREFIX + "scale"]), "zero_point": int(meta[PREFIX + "zero_point"])}
+            "scale": np.float32(meta[PREFIX + "scale"]), "zero_point": int(meta[PREFIX + "zero_point"]),
+            "layout": layout}
+
+
+def canonical(phases, layout):
+    """`phases` in `layout` as N x 4C x h x w (CANONICAL)."""
+    if layout == CANONICAL:
+        return phases
+    n, h1, w1, c4 = phases.shape
+    ch = c4 // 4
+    parts = [phases[:, a:a + h1 - 1, b:b + w1 - 1, (2 * a + b) * ch:(2 * a + b + 1) * ch]
+             for a in (0, 1) for b in (0, 1)]
+    return np.ascontiguousarray(np.concatenate(parts, axis=3).transpose(0, 3, 1, 2))
 
 
 def apply(layer, phases):
-    """The output convolution on the graph's `phases` (N x 4C x h x w uint8): N x 1 x 2h x 2w
-    float32, `relu(bias + conv3x3(dequantised full-resolution tensor, zero padded))`."""
+    """The output convolution on the graph's `phases` (N x 4C x h x w uint8, or the layout the
+    layer says): N x 1 x 2h x 2w float32, `relu(bias + conv3x3(dequantised full-resolution
+    tensor, zero padded))`."""
+    phases = canonical(phases, layer.get("layout", CANONICAL))
     w = layer["weight"]
     n, c4, h, wd = phases.shape
     ch = c4 // 4

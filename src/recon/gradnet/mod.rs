@@ -36,9 +36,11 @@ pub use model::ModelVariant;
 /// the training split.
 ///
 /// GradNet's feature model runs int8 by default since the forty-first session: its int8 graph
-/// (`onnx/gradnet_int8.onnx`, the ReLU graph quantisation-aware fine-tuned against references,
-/// `docs/gradnet.md`, "A ReLU graph for int8") is about 2.6x faster than fp32 on a CPU with
-/// AVX-512 VNNI (1.36-1.46x OIDN's time at 720p); its relMSE is 0.8 % below fp32's on validation
+/// (`onnx/gradnet_int8_nhwc.onnx`, the ReLU graph quantisation-aware fine-tuned against
+/// references, `docs/gradnet.md`, "A ReLU graph for int8", its decoder channels-last since the
+/// fifty-sixth session, "The deployed graph") is 3.0x faster than fp32 on an Intel Xeon with
+/// AVX-512 VNNI (the network 3.4x; 1.15-1.17x OIDN's time at 720p, 1.35-1.46x before the
+/// rewrite); its relMSE is 0.8 % below fp32's on validation
 /// and 0.2 % below on test (geometric means over 24 frames each, #19's bar being 2 %), +3 / +4 %
 /// at 64 spp, up to 1.16x on one frame (`dusk` 64 spp). What kept it from being the default,
 /// the HDR guard frame, was the bias correction's gain, not int8 (`bias_limit`). `fp32` runs
@@ -227,9 +229,9 @@ impl Params for GradNetConfig {
         Param::choice(
             "precision",
             GradNetPrecision::NAMES,
-            "Arithmetic of the feature model: int8 (onnx/gradnet_int8.onnx, ReLU graph \
-             quantisation-aware fine-tuned against training references; about 2.6x faster than \
-             fp32 with AVX-512 VNNI, relMSE -0.8 % on validation and -0.2 % on test against fp32, \
+            "Arithmetic of the feature model: int8 (onnx/gradnet_int8_nhwc.onnx, ReLU graph \
+             quantisation-aware fine-tuned against training references, its decoder \
+             channels-last; 3x faster than fp32 with AVX-512 VNNI, relMSE -0.8 % on validation and -0.2 % on test against fp32, \
              +3-4 % at 64 spp, up to 1.16x on one frame) or fp32 (onnx/gradnet.onnx, the graph \
              the torch parity tests hold); frames without features run the fp32 no-feature \
              model either way; ignored when a model file is given",

@@ -1,8 +1,9 @@
 //! Where the networks' weights come from, and proof that they are the ones exported.
 //!
 //! The exported models (GradNet's `onnx/gradnet.onnx` with features,
-//! `onnx/gradnet_nofeat.onnx` without, and `onnx/gradnet_int8.onnx`, the feature model
-//! quantised to int8 by `onnx/gdrecon_py/quantize.py`; the combiner's `onnx/combiner.onnx`) are
+//! `onnx/gradnet_nofeat.onnx` without, and `onnx/gradnet_int8_nhwc.onnx`, the feature model
+//! quantised to int8 by `onnx/gdrecon_py/quantize.py` and its decoder rewritten channels-last
+//! by `onnx/gdrecon_py/nhwc.py`; the combiner's `onnx/combiner.onnx`) are
 //! embedded in the library by the `embed-model` feature (on by default), or read from a file.
 //! Either way the SHA-256 of the bytes is checked before ONNX Runtime sees them: against the
 //! `.sha256` file `export.py` / `quantize.py` / `combiner.py` write beside each model (recorded
@@ -24,11 +25,12 @@ pub enum ModelVariant {
     Full,
     /// `gradnet_nofeat.onnx`: colour only, for frames without feature layers.
     NoFeatures,
-    /// `gradnet_int8.onnx`: [`ModelVariant::Full`] quantised to int8 (QDQ: int8 weights per
-    /// output channel, uint8 activations; the first two convolutions kept in fp32, and the
+    /// `gradnet_int8_nhwc.onnx`: [`ModelVariant::Full`] quantised to int8 (QDQ: int8 weights
+    /// per output channel, uint8 activations; the first two convolutions kept in fp32, and the
     /// output convolution too, outside the graph, which ends at its quantised input:
     /// `output_layer.rs`), calibrated on the training split (`docs/gradnet.md`, "Reduced
-    /// precision").
+    /// precision"), its decoder channels-last (`onnx/gdrecon_py/nhwc.py`: `gradnet_int8.onnx`,
+    /// the form fine-tuning reads and writes, rewritten for ONNX Runtime's int8 kernels).
     FullInt8,
     /// `combiner.onnx`: the combiner's network (`onnx/gdrecon_py/combiner.py`), not a GradNet.
     Combiner,
@@ -54,7 +56,7 @@ impl ModelVariant {
         match self {
             ModelVariant::Full => "gradnet.onnx",
             ModelVariant::NoFeatures => "gradnet_nofeat.onnx",
-            ModelVariant::FullInt8 => "gradnet_int8.onnx",
+            ModelVariant::FullInt8 => "gradnet_int8_nhwc.onnx",
             ModelVariant::Combiner => "combiner.onnx",
             ModelVariant::CombinerInt8 => "combiner_int8.onnx",
         }
@@ -74,7 +76,7 @@ impl ModelVariant {
         let line = match self {
             ModelVariant::Full => include_str!("../../../onnx/gradnet.onnx.sha256"),
             ModelVariant::NoFeatures => include_str!("../../../onnx/gradnet_nofeat.onnx.sha256"),
-            ModelVariant::FullInt8 => include_str!("../../../onnx/gradnet_int8.onnx.sha256"),
+            ModelVariant::FullInt8 => include_str!("../../../onnx/gradnet_int8_nhwc.onnx.sha256"),
             ModelVariant::Combiner => include_str!("../../../onnx/combiner.onnx.sha256"),
             ModelVariant::CombinerInt8 => {
                 include_str!("../../../onnx/combiner_int8.onnx.sha256")
@@ -118,7 +120,7 @@ pub(crate) fn embedded(variant: ModelVariant) -> Result<ModelBytes> {
         let bytes: &'static [u8] = match variant {
             ModelVariant::Full => include_bytes!("../../../onnx/gradnet.onnx"),
             ModelVariant::NoFeatures => include_bytes!("../../../onnx/gradnet_nofeat.onnx"),
-            ModelVariant::FullInt8 => include_bytes!("../../../onnx/gradnet_int8.onnx"),
+            ModelVariant::FullInt8 => include_bytes!("../../../onnx/gradnet_int8_nhwc.onnx"),
             ModelVariant::Combiner => include_bytes!("../../../onnx/combiner.onnx"),
             ModelVariant::CombinerInt8 => include_bytes!("../../../onnx/combiner_int8.onnx"),
         };

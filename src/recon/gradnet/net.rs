@@ -39,6 +39,8 @@ pub(crate) struct Net {
     layer: Option<OutputLayer>,
     /// Its output, kept between runs (every tile of a plan has one size).
     full: Array2<f32>,
+    /// The output layer's scratch, kept likewise.
+    rows: Vec<u8>,
     /// Where the model came from (for reports).
     pub origin: String,
 }
@@ -158,7 +160,7 @@ pub(crate) fn input_names(session: &Session) -> String {
 }
 
 /// A graph whose metadata describes an output layer must return `phases` as uint8 with the
-/// layer's `4 C` channels (where the graph states them): checked when the model is loaded.
+/// layer's `4 C` channels last (where the graph states them): checked when the model is loaded.
 fn check_phases(session: &Session, layer: &OutputLayer, origin: &str) -> Result<()> {
     let Some(phases) = session.outputs().iter().find(|o| o.name() == PHASES) else {
         return Err(Error::Model(format!(
@@ -166,12 +168,12 @@ fn check_phases(session: &Session, layer: &OutputLayer, origin: &str) -> Result<
         )));
     };
     let dtype = phases.dtype();
-    let channels = dtype.tensor_shape().filter(|s| s.len() == 4).map(|s| s[1]);
+    let channels = dtype.tensor_shape().filter(|s| s.len() == 4).map(|s| s[3]);
     let ok = dtype.tensor_type() == Some(ort::value::TensorElementType::Uint8)
         && matches!(channels, Some(c) if c < 0 || c as usize == 4 * layer.channels());
     if !ok {
         return Err(Error::Model(format!(
-            "{origin}: output `{PHASES}` is {dtype:?}; its output layer reads N x {} x H/2 x W/2 uint8",
+            "{origin}: output `{PHASES}` is {dtype:?}; its output layer reads N x (H/2 + 1) x (W/2 + 1) x {} uint8",
             4 * layer.channels()
         )));
     }
@@ -227,6 +229,7 @@ impl Net {
             layer,
             origin: model.origin.clone(),
             full: Array2::zeros((0, 0)),
+            rows: Vec::new(),
         })
     }
 
@@ -243,7 +246,8 @@ impl Net {
         let (_, _, h, w) = data.dim();
         let data = TensorRef::from_array_view(data).map_err(fail)?;
         let grad = TensorRef::from_array_view(grad).map_err(fail)?;
-        let (session, layer, full) = (&mut self.session, &self.layer, &mut self.full);
+        let (session, layer) = (&mut self.session, &self.layer);
+        let (full, rows) = (&mut self.full, &mut self.rows);
         let origin = &self.origin;
         // A model file's graph may return any shape: one that does not match the input's is
         // refused here rather than read out of bounds by the caller.
@@ -270,13 +274,14 @@ impl Net {
                 return Ok(());
             };
             let phases = output::<u8, _>(&outputs, PHASES, "GradNet inference", |d| match d {
-                &[1, c, ph, pw] => (c, ph, pw),
+                &[1, ph, pw, c] => (ph, pw, c),
                 _ => (0, 0, 0),
             })?;
-            if (2 * phases.dim().1, 2 * phases.dim().2) != (h, w) {
+            let (ph, pw, _) = phases.dim();
+            if ph == 0 || pw == 0 || (2 * (ph - 1), 2 * (pw - 1)) != (h, w) {
                 return Err(wrong(PHASES, phases.shape()));
             }
-            layer.apply(phases, full)?;
+            layer.apply(phases, rows, full)?;
             consume(full.view());
             Ok(())
         })

@@ -1,15 +1,21 @@
 //! GradNet's output convolution (32 -> 1 channels, 3 x 3, fp32), applied here to the int8
 //! graph's last quantised tensor instead of inside ONNX Runtime.
 //!
-//! `onnx/gradnet_int8.onnx` ends at `phases`: the last decoder layer's four output phases at half
-//! resolution, `N x 4C x h x w` uint8, channel `(2 a + b) C + c` holding channel `c` at the
-//! full-resolution rows of parity `a` and columns of parity `b`. The convolution's weights, bias
-//! and that tensor's scale and zero point are in the graph's metadata (`output_layer.*`, written by
+//! The deployed int8 graph (`onnx/gradnet_int8_nhwc.onnx`) ends at `phases`: the last decoder
+//! layer's four output phases, channels-last, `N x (h + 1) x (w + 1) x 4C` uint8, channels
+//! `(2 a + b) C ..` holding the full-resolution rows of parity `a` and columns of parity `b` at
+//! rows `a .. a + h`, columns `b .. b + w` (one 2 x 2 convolution with pads 1 computes all four
+//! phases; `onnx/gdrecon_py/nhwc.py`, which says why the graph is channels-last). So the
+//! full-resolution pixel `(y, x)` is at row `(y + 1) / 2`, column `(x + 1) / 2`, channels
+//! `(2 (y % 2) + x % 2) C ..`. The convolution's weights, bias and that tensor's scale and zero
+//! point are in the graph's metadata (`output_layer.*`, written by
 //! `onnx/gdrecon_py/output_layer.py`, which is also the reference the parity tests hold this
 //! to). ONNX Runtime ran the layer as a dequantisation, a reorder to its blocked layout, a
 //! convolution padding its 4 phase outputs to 16 and a reorder back: 73 of 367 ms of one
-//! 1280 x 720 channel. Here each output row is 6 multiply-adds per weight over contiguous rows
-//! of the phases, for the same values up to the order of the fp32 sums.
+//! 1280 x 720 channel. Here the phases are put channels-first (a transpose of whole rows, about
+//! as fast as ONNX Runtime's but over every thread), then each output row is 6 multiply-adds
+//! per weight over contiguous rows of the phases, for the same values up to the order of the
+//! fp32 sums.
 
 use ndarray::{Array2, ArrayView3};
 use rayon::prelude::*;
@@ -18,6 +24,9 @@ use crate::error::{Error, Result};
 
 /// Metadata keys: `output_layer.<name>`.
 const PREFIX: &str = "output_layer.";
+
+/// The `phases` layout this reads (`output_layer.layout`).
+const LAYOUT: &str = "nhwc_padded";
 
 /// The output convolution: `relu(bias + sum_{c,r,s} weight[c][r][s] v_c(y + r - 1, x + s - 1))`
 /// over the dequantised full-resolution tensor `v = scale (q - zero_point)`, zero outside.
@@ -62,6 +71,14 @@ impl OutputLayer {
                 .filter(|v| v.is_finite())
                 .ok_or_else(|| bad(what))
         };
+        let layout = key("layout").unwrap_or_else(|| "nchw".into());
+        if layout != LAYOUT {
+            return Err(Error::Model(format!(
+                "{origin}: its phases are in the layout `{layout}` ({PREFIX}layout); gdrecon \
+                 reads `{LAYOUT}`, the deployed graph's: rewrite it with `python -m \
+                 gdrecon_py.nhwc --model FILE --out FILE.nhwc.onnx` (onnx/gdrecon_py/nhwc.py)"
+            )));
+        }
         let channels = value::<usize>(key("channels"))
             .filter(|&c| c > 0)
             .ok_or_else(|| bad("channels"))?;
@@ -92,27 +109,45 @@ impl OutputLayer {
         self.weight.len()
     }
 
-    /// The layer over one item's phases (`4C x h x w`) into `out`, resized to `2h x 2w`.
-    pub fn apply(&self, phases: ArrayView3<'_, u8>, out: &mut Array2<f32>) -> Result<()> {
-        let (c4, h, w) = phases.dim();
+    /// The layer over one item's phases (`(h + 1) x (w + 1) x 4C`) into `out`, resized to
+    /// `2h x 2w`; `rows` is scratch kept between calls (the phases channels-first).
+    pub fn apply(
+        &self,
+        phases: ArrayView3<'_, u8>,
+        rows: &mut Vec<u8>,
+        out: &mut Array2<f32>,
+    ) -> Result<()> {
+        let (h1, w1, c4) = phases.dim();
         let ch = self.weight.len();
-        if c4 != 4 * ch {
+        if c4 != 4 * ch || h1 == 0 || w1 == 0 {
             return Err(Error::Runtime(format!(
-                "GradNet inference: the graph returned {c4} phase channels, its output layer reads {}",
+                "GradNet inference: the graph returned phases of shape {:?}, its output layer reads \
+                 (h + 1) x (w + 1) x {}",
+                phases.shape(),
                 4 * ch
             )));
         }
-        let phases = phases.as_standard_layout();
-        let q = phases.as_slice().expect("standard layout");
-        let plane = |k: usize, row: usize| &q[(k * h + row) * w..][..w];
+        let (h, w) = (h1 - 1, w1 - 1);
         if out.dim() != (2 * h, 2 * w) {
             *out = Array2::zeros((2 * h, 2 * w));
         }
-        if w == 0 {
+        if w == 0 || h == 0 {
             return Ok(());
         }
-        let rows = out.as_slice_mut().expect("standard layout");
-        rows.par_chunks_mut(2 * w).enumerate().for_each_init(
+        let phases = phases.as_standard_layout();
+        let q = phases.as_slice().expect("standard layout");
+        // Channels-first per half-resolution row: rows[(m 4C + k) w + n] is channel k of phase
+        // (a, b) = divmod(k / C, 2) at half-resolution (m, n), read at (m + a, n + b). The
+        // convolution below runs along rows; channels-last it would be a dot product per pixel
+        // (measured 5x slower, "The deployed graph" in docs/gradnet.md).
+        rows.resize(h * c4 * w, 0);
+        let stride = w1 * c4;
+        rows.par_chunks_mut(c4 * w)
+            .enumerate()
+            .for_each(|(m, row)| unshuffle(row, &q[m * stride..][..2 * stride], ch));
+        let plane = |k: usize, half: usize| &rows[(half * c4 + k) * w..][..w];
+        let out_rows = out.as_slice_mut().expect("standard layout");
+        out_rows.par_chunks_mut(2 * w).enumerate().for_each_init(
             || {
                 (
                     vec![0.0f32; w],
@@ -157,6 +192,63 @@ impl OutputLayer {
     }
 }
 
+/// One half-resolution row `m` of the four phases channels-first (`row`: `4C x w`) from the
+/// channels-last rows `m` and `m + 1` of the graph's output (`src`: `2 x (w + 1) x 4C`): in
+/// 8 x 8 blocks of bytes (8 columns of 8 channels of one phase; [`transpose8`]) where `C` is a
+/// multiple of 8, byte by byte otherwise and for the last `w % 8` columns.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma"
+))]
+fn unshuffle(row: &mut [u8], src: &[u8], ch: usize) {
+    let c4 = 4 * ch;
+    let w = row.len() / c4;
+    let stride = (w + 1) * c4;
+    // Where channel k's column 0 is in `src`: phase (a, b) = divmod(k / C, 2) at (a, b).
+    let first = |k: usize| ((k / ch) / 2) * stride + ((k / ch) % 2) * c4 + k;
+    let blocked = if ch % 8 == 0 { w / 8 * 8 } else { 0 };
+    for n0 in (0..blocked).step_by(8) {
+        for k0 in (0..c4).step_by(8) {
+            let at = first(k0) + n0 * c4;
+            let mut block: [u64; 8] = std::array::from_fn(|i| {
+                u64::from_le_bytes(src[at + i * c4..][..8].try_into().expect("8 bytes"))
+            });
+            transpose8(&mut block);
+            for (j, bytes) in block.iter().enumerate() {
+                row[(k0 + j) * w + n0..][..8].copy_from_slice(&bytes.to_le_bytes());
+            }
+        }
+    }
+    for (k, plane) in row.chunks_exact_mut(w).enumerate() {
+        let from = &src[first(k)..];
+        for (n, v) in plane.iter_mut().enumerate().skip(blocked) {
+            *v = from[n * c4];
+        }
+    }
+}
+
+/// Transposes an 8 x 8 matrix of bytes held as 8 little-endian rows: byte `j` of row `i`
+/// becomes byte `i` of row `j`. Three rounds swap the off-diagonal halves of 2 x 2, 4 x 4 and
+/// 8 x 8 blocks (bytes, byte pairs, byte quadruples).
+#[inline(always)]
+fn transpose8(m: &mut [u64; 8]) {
+    for (shift, mask, pairs) in [
+        (
+            8,
+            0x00ff_00ff_00ff_00ff_u64,
+            [(0, 1), (2, 3), (4, 5), (6, 7)],
+        ),
+        (16, 0x0000_ffff_0000_ffff, [(0, 2), (1, 3), (4, 6), (5, 7)]),
+        (32, 0x0000_0000_ffff_ffff, [(0, 4), (1, 5), (2, 6), (3, 7)]),
+    ] {
+        for (i, j) in pairs {
+            let t = ((m[i] >> shift) ^ m[j]) & mask;
+            m[j] ^= t;
+            m[i] ^= t << shift;
+        }
+    }
+}
+
 /// `out = q - zero_point`, as f32.
 #[multiversion::multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
@@ -190,69 +282,91 @@ mod tests {
     use ndarray::Array3;
 
     /// Against the definition: the phases interleaved into the full-resolution tensor, a
-    /// direct 3 x 3 convolution with zero padding, in f64.
+    /// direct 3 x 3 convolution with zero padding, in f64, for two shapes with one scratch.
     #[test]
     fn matches_a_direct_convolution_of_the_interleaved_phases() {
-        let (ch, h, w) = (3, 5, 7);
-        let mut seed = 7u32;
-        let mut next = || {
-            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-            seed >> 8
-        };
-        let weight: Vec<f32> = (0..9 * ch)
-            .map(|_| (next() % 2001) as f32 / 1000.0 - 1.0)
-            .collect();
-        let text = weight
-            .iter()
-            .map(|v| v.to_string())
-            .collect::<Vec<_>>()
-            .join(" ");
-        let meta = |key: &str| match key.strip_prefix(PREFIX)? {
-            "weight" => Some(text.clone()),
-            "bias" => Some("-0.25".into()),
-            "scale" => Some("0.0125".into()),
-            "zero_point" => Some("120".into()),
-            "channels" => Some(ch.to_string()),
-            _ => None,
-        };
-        let layer = OutputLayer::from_metadata(meta, "test").unwrap().unwrap();
-        let q = Array3::from_shape_fn((4 * ch, h, w), |_| (next() % 256) as u8);
-        let mut out = Array2::from_elem((1, 1), f32::NAN);
-        layer.apply(q.view(), &mut out).unwrap();
-        let v = |c: usize, y: isize, x: isize| -> f64 {
-            if y < 0 || x < 0 || y >= 2 * h as isize || x >= 2 * w as isize {
-                return 0.0;
-            }
-            let (y, x) = (y as usize, x as usize);
-            let k = 2 * (y % 2) + x % 2;
-            0.0125 * (f64::from(q[[k * ch + c, y / 2, x / 2]]) - 120.0)
-        };
-        let mut positive = 0;
-        for y in 0..2 * h {
-            for x in 0..2 * w {
-                let mut want = -0.25f64;
-                for c in 0..ch {
-                    for r in 0..3 {
-                        for s in 0..3 {
-                            let (yy, xx) =
-                                (y as isize + r as isize - 1, x as isize + s as isize - 1);
-                            want += f64::from(weight[9 * c + 3 * r + s]) * v(c, yy, xx);
+        let mut rows = vec![7u8; 5];
+        // 3 and 19 channels: byte by byte; 8 and 16: in blocks of 8 columns (and 9 and 3 left)
+        for (ch, h, w) in [(3, 5, 7), (19, 4, 6), (8, 3, 17), (16, 2, 8)] {
+            let mut seed = 7u32;
+            let mut next = || {
+                seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                seed >> 8
+            };
+            let weight: Vec<f32> = (0..9 * ch)
+                .map(|_| (next() % 2001) as f32 / 1000.0 - 1.0)
+                .collect();
+            let text = weight
+                .iter()
+                .map(|v| v.to_string())
+                .collect::<Vec<_>>()
+                .join(" ");
+            let meta = |key: &str| match key.strip_prefix(PREFIX)? {
+                "weight" => Some(text.clone()),
+                "bias" => Some("-0.25".into()),
+                "scale" => Some("0.0125".into()),
+                "zero_point" => Some("120".into()),
+                "channels" => Some(ch.to_string()),
+                "layout" => Some(LAYOUT.into()),
+                _ => None,
+            };
+            let layer = OutputLayer::from_metadata(meta, "test").unwrap().unwrap();
+            let q = Array3::from_shape_fn((h + 1, w + 1, 4 * ch), |_| (next() % 256) as u8);
+            let mut out = Array2::from_elem((1, 1), f32::NAN);
+            layer.apply(q.view(), &mut rows, &mut out).unwrap();
+            assert_eq!(out.dim(), (2 * h, 2 * w));
+            // Full-resolution pixel (y, x) is phase (y % 2, x % 2) at half-resolution (y / 2,
+            // x / 2), stored at row y / 2 + y % 2, column x / 2 + x % 2.
+            let v = |c: usize, y: isize, x: isize| -> f64 {
+                if y < 0 || x < 0 || y >= 2 * h as isize || x >= 2 * w as isize {
+                    return 0.0;
+                }
+                let (y, x) = (y as usize, x as usize);
+                let k = 2 * (y % 2) + x % 2;
+                let q = q[[y / 2 + y % 2, x / 2 + x % 2, k * ch + c]];
+                0.0125 * (f64::from(q) - 120.0)
+            };
+            let mut positive = 0;
+            for y in 0..2 * h {
+                for x in 0..2 * w {
+                    let mut want = -0.25f64;
+                    for c in 0..ch {
+                        for r in 0..3 {
+                            for s in 0..3 {
+                                let (yy, xx) =
+                                    (y as isize + r as isize - 1, x as isize + s as isize - 1);
+                                want += f64::from(weight[9 * c + 3 * r + s]) * v(c, yy, xx);
+                            }
                         }
                     }
+                    let want = want.max(0.0);
+                    positive += usize::from(want > 0.0);
+                    let got = f64::from(out[[y, x]]);
+                    assert!(
+                        (got - want).abs() <= 1e-5 * (1.0 + want.abs()),
+                        "{ch} channels, ({y}, {x}): {got} vs {want}"
+                    );
                 }
-                let want = want.max(0.0);
-                positive += usize::from(want > 0.0);
-                let got = f64::from(out[[y, x]]);
-                assert!(
-                    (got - want).abs() <= 1e-5 * (1.0 + want.abs()),
-                    "({y}, {x}): {got} vs {want}"
-                );
+            }
+            assert!(
+                positive > 10 && positive < 4 * h * w - 10,
+                "both sides of the ReLU: {positive}"
+            );
+        }
+    }
+
+    #[test]
+    fn transpose8_transposes() {
+        let rows: [u64; 8] = std::array::from_fn(|i| {
+            u64::from_le_bytes(std::array::from_fn(|j| (16 * i + j) as u8))
+        });
+        let mut m = rows;
+        transpose8(&mut m);
+        for (i, row) in rows.iter().enumerate() {
+            for (j, column) in m.iter().enumerate() {
+                assert_eq!(column.to_le_bytes()[i], row.to_le_bytes()[j], "({i}, {j})");
             }
         }
-        assert!(
-            positive > 10 && positive < 4 * h * w - 10,
-            "both sides of the ReLU: {positive}"
-        );
     }
 
     /// Metadata of a 1-channel layer (weights all 1, every other value 1) with `over` replacing
@@ -263,6 +377,7 @@ mod tests {
             match over.iter().find(|(k, _)| *k == key) {
                 Some((_, v)) => Some(v.to_string()),
                 None if key == "weight" => Some(["1"; 9].join(" ")),
+                None if key == "layout" => Some(LAYOUT.into()),
                 None => Some("1".into()),
             }
         }
@@ -300,13 +415,30 @@ mod tests {
                 "{key}={value}: {err}"
             );
         }
+        // A graph whose phases are in another layout (the canonical QDQ graph's, which says
+        // none) is refused with the rewrite that fixes it.
+        for layout in [None, Some("nchw")] {
+            let meta = |key: &str| match key.strip_prefix(PREFIX) {
+                Some("layout") => layout.map(String::from),
+                _ => metadata(&[])(key),
+            };
+            let err = OutputLayer::from_metadata(meta, "m.onnx")
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains("m.onnx") && err.contains("gdrecon_py.nhwc"),
+                "{err}"
+            );
+        }
         // Phases of the wrong channel count are refused, not read out of bounds.
         let layer = OutputLayer::from_metadata(metadata(&[]), "m")
             .unwrap()
             .unwrap();
         let mut out = Array2::zeros((0, 0));
-        assert!(layer
-            .apply(Array3::zeros((8, 2, 2)).view(), &mut out)
-            .is_err());
+        for shape in [(2, 2, 8), (0, 2, 4), (2, 0, 4)] {
+            assert!(layer
+                .apply(Array3::zeros(shape).view(), &mut Vec::new(), &mut out)
+                .is_err());
+        }
     }
 }
