@@ -51,7 +51,6 @@ class _Graph:
     """Index of a graph's nodes and initializers, rebuilt after each edit."""
 
     def __init__(self, m):
-        self.m = m
         self.g = m.graph
         self.init = {i.name: i for i in self.g.initializer}
         self.producer = {o: n for n in self.g.node for o in n.output}
@@ -189,7 +188,8 @@ def merge_phases(m):
         a, b = divmod(k, 2)
         attrs = {x.name: helper.get_attribute_value(x) for x in conv.attribute}
         if attrs.get("kernel_shape") != [2, 2] or attrs.get("pads") != [1 - a, 1 - b, a, b] or \
-                attrs.get("strides", [1, 1]) != [1, 1] or attrs.get("group", 1) != 1:
+                attrs.get("strides", [1, 1]) != [1, 1] or attrs.get("group", 1) != 1 or \
+                attrs.get("dilations", [1, 1]) != [1, 1]:
             raise ValueError(f"{conv.name}: not phase ({a}, {b}) of a sub-pixel layer")
         if len(gr.readers[pq.output[0]]) != 1 or len(gr.readers[conv.output[0]]) != 1:
             raise ValueError(f"{conv.name}: its output is read by more than the concatenation")
@@ -208,13 +208,12 @@ def merge_phases(m):
         for j in range(3):
             a = np.concatenate([gr.array(part[which][j]) for part in parts])
             m.graph.initializer.append(numpy_helper.from_array(a, names[which][j]))
-    attrs = {x.name: helper.get_attribute_value(x) for x in convs[0].attribute}
+    ch = len(gr.array(parts[0][0][0])) * len(parts)
     new = [
         helper.make_node("DequantizeLinear", names[0], [p + "_weight"], axis=0, name=p + "_weight"),
         helper.make_node("DequantizeLinear", names[1], [p + "_bias"], axis=0, name=p + "_bias"),
         helper.make_node("Conv", [convs[0].input[0], p + "_weight", p + "_bias"], [p + "_conv"],
-                         kernel_shape=[2, 2], pads=[1, 1, 1, 1], name=p + "_conv",
-                         **{k: v for k, v in attrs.items() if k in ("dilations",)}),
+                         dilations=[1, 1], kernel_shape=[2, 2], pads=[1, 1, 1, 1], name=p + "_conv"),
         helper.make_node("QuantizeLinear", [p + "_conv"] + list(q.input[1:]), [p + "_q"], name=p + "_q"),
         helper.make_node("Transpose", [p + "_q"], [out], perm=[0, 2, 3, 1], name=p + "_nhwc"),
     ]
@@ -222,7 +221,6 @@ def merge_phases(m):
         gr.made_by(t, "DequantizeLinear").name for t in cat.input} | {
         gr.made_by(c.input[i], "DequantizeLinear").name for c in convs for i in (1, 2)}
     gr.splice(drop, new, convs[0].name)
-    ch = int(np.concatenate([gr.array(part[0][0]) for part in parts]).shape[0])
     del m.graph.output[:]
     m.graph.output.append(helper.make_tensor_value_info(out, TensorProto.UINT8, ["N", "h1", "w1", ch]))
     del m.graph.value_info[:]

@@ -446,7 +446,7 @@ def test_nhwc_rewrite_moves_the_same_values(tmp_path):
     shuffles alone are exact (the same uint8 phases), the merged phases are at most one
     quantisation step from the canonical graph's, and the output layer reads both layouts to
     the same image within those steps; a graph already rewritten, or not split, is refused."""
-    from gdrecon_py import nhwc
+    from gdrecon_py import nhwc, runtime
     from gdrecon_py import output_layer as ol
     from gdrecon_py import quantize as qz
     torch.manual_seed(3)
@@ -467,7 +467,7 @@ def test_nhwc_rewrite_moves_the_same_values(tmp_path):
     d = rng.random((1, 8, 40, 56), dtype=np.float32)
     g = rng.random((1, 2, 40, 56), dtype=np.float32) - 0.5
     feed = {"data": d, "grad": g}
-    run = {k: runtime_session(str(tmp_path / f"{k}.onnx")).run([ol.OUTPUT], feed)[0]
+    run = {k: runtime.session(str(tmp_path / f"{k}.onnx")).run([ol.OUTPUT], feed)[0]
            for k in ("cut", "shuffled", "nhwc")}
     assert run["nhwc"].shape == (1, 21, 29, 128)
     assert np.array_equal(run["shuffled"], run["cut"]) and run["cut"].max() > 0
@@ -491,11 +491,6 @@ def test_nhwc_rewrite_moves_the_same_values(tmp_path):
         nhwc.rewrite(onnx.load(deployed))
     with pytest.raises(ValueError, match="not an int8 graph"):
         nhwc.rewrite(onnx.load(src))
-
-
-def runtime_session(path):
-    from gdrecon_py import runtime
-    return runtime.session(path)
 
 
 def test_deployed_int8_graph_is_the_rewrite_of_the_int8_graph():
