@@ -129,10 +129,11 @@ fn matches_the_python_reference_on_every_guard_frame() {
 fn tiles_give_the_untiled_output() {
     let frame = frame("lamps_16spp");
     let (whole, _) = run(&frame, &MethodConfig::Combiner(Default::default())).unwrap();
-    for tile in [56, 64] {
+    // 80 x 48: 4 tiles of 56 x 48, 2 of 64 x 48.
+    for tile in [56 * 48, 56 * 56] {
         let mut config = CombinerConfig::default();
         config.whole_pixels = 0;
-        config.tile_size = tile;
+        config.tile_pixels = tile;
         let (tiled, report) = run(&frame, &MethodConfig::Combiner(config)).unwrap();
         let worst = worst_relative(&tiled, &whole);
         assert!(worst <= 1e-4, "tile {tile}: {worst:e}");
@@ -150,12 +151,12 @@ fn tiles_give_the_untiled_output() {
     let (whole, _) = run(&cropped, &MethodConfig::Combiner(Default::default())).unwrap();
     let mut config = CombinerConfig::default();
     config.whole_pixels = 0;
-    config.tile_size = 56;
+    config.tile_pixels = 56 * 56;
     let (tiled, _) = run(&cropped, &MethodConfig::Combiner(config)).unwrap();
     assert!(worst_relative(&tiled, &whole) <= 1e-4);
     let mut too_small = CombinerConfig::default();
     too_small.whole_pixels = 0;
-    too_small.tile_size = 40;
+    too_small.tile_pixels = 56 * 48 - 1;
     let err = run(&frame, &MethodConfig::Combiner(too_small))
         .unwrap_err()
         .to_string();

@@ -181,10 +181,10 @@ fn emitter_rule_matches_the_python_reference() {
 fn tiles_match_the_untiled_run() {
     let frame = sample();
     let mut whole = GradNetConfig::default();
-    whole.tile_size = 0;
+    whole.tile_pixels = 0;
     let mut tiled = GradNetConfig::default();
     tiled.whole_pixels = 0;
-    tiled.tile_size = 232; // 320 x 184 padded: 4 tiles of 232 x 184
+    tiled.tile_pixels = 232 * 184; // 320 x 184 padded: 4 tiles of 224 x 184
     let mut plan = Plan::new(&context(), &MethodConfig::GradNet(tiled), 320, 180).unwrap();
     let (got, report) = plan.execute(&frame, &Progress::none()).unwrap();
     assert!(
@@ -193,6 +193,43 @@ fn tiles_match_the_untiled_run() {
         report.notes
     );
     assert_close(&got, &run(&frame, whole).unwrap(), "tiled");
+}
+
+/// The int8 default lays tiles out for the int8 graph's budgets; a frame without features runs
+/// the fp32 no-feature model, which takes 3x the memory a pixel, in tiles of half the budgets,
+/// and the same plan goes back to the int8 tiles for a frame with features.
+#[test]
+fn an_fp32_graph_runs_in_tiles_of_half_the_budgets() {
+    let frame = sample(); // 320 x 184 padded: 58880 pixels
+    let featureless = without_features(frame.clone());
+    let mut config = GradNetConfig::default();
+    config.whole_pixels = 60_000;
+    config.tile_pixels = 2 * 232 * 184; // fp32: 4 tiles of 224 x 184
+    let ctx = context();
+    let mut plan = Plan::new(&ctx, &MethodConfig::GradNet(config), 320, 180).unwrap();
+    let tiles = |report: &gdrecon::Report| {
+        report
+            .notes
+            .iter()
+            .find_map(|n| {
+                n.split(", ")
+                    .find(|p| p.contains("tile(s)"))
+                    .map(str::to_owned)
+            })
+            .unwrap()
+    };
+    let (fp32, report) = plan.execute(&featureless, &Progress::none()).unwrap();
+    assert_eq!(tiles(&report), "4 tile(s) of 224 x 184");
+    let (int8, report) = plan.execute(&frame, &Progress::none()).unwrap();
+    assert_eq!(tiles(&report), "1 tile(s) of 320 x 184");
+    let mut whole = GradNetConfig::default();
+    whole.tile_pixels = 0;
+    assert_close(
+        &fp32,
+        &run(&featureless, whole.clone()).unwrap(),
+        "fp32 tiled",
+    );
+    assert_eq!(int8.as_slice(), run(&frame, whole).unwrap().as_slice());
 }
 
 #[test]
@@ -309,15 +346,19 @@ fn model_errors_are_distinct() {
 
     // A tile too small for the receptive field.
     let mut c = GradNetConfig::default();
-    c.tile_size = 100;
+    c.tile_pixels = 100 * 100;
     let small = run(&crop("crop_a"), c);
     assert!(small.is_ok(), "a frame within whole_pixels is one tile");
     let big = sample();
     let mut c = GradNetConfig::default();
     c.whole_pixels = 0;
-    c.tile_size = 100;
+    c.tile_pixels = 100 * 100;
     let err = run(&big, c).unwrap_err();
     assert!(matches!(err, Error::InvalidArgument(_)), "{err}");
+    assert!(
+        err.to_string().contains("tile_pixels 10000 is too small"),
+        "{err}"
+    );
 }
 
 fn gdrecon() -> Command {

@@ -148,7 +148,7 @@ fn gradnet_skips_empty_tiles() {
     let frame = half_empty(640);
     let mut config = GradNetConfig::default();
     config.whole_pixels = 0;
-    config.tile_size = 256;
+    config.tile_pixels = 256 * 184; // 12 tiles of 256 x 184
     let (out, report) = run(&frame, MethodConfig::GradNet(config));
     let note = skipped(&report, "no radiance and no gradient");
     println!(
@@ -228,7 +228,7 @@ fn gradnet_keeps_converged_tiles() {
     let frame = half_converged();
     let mut config = GradNetConfig::default();
     config.whole_pixels = 0;
-    config.tile_size = 232;
+    config.tile_pixels = 232 * 184; // 12 tiles of 232 x 184
     let (out, report) = run(&frame, MethodConfig::GradNet(config));
     let note = skipped(&report, "converged");
     println!("gradnet on 640 x 180, right half converged: {note}");

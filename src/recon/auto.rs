@@ -186,7 +186,7 @@ impl AutoConfig {
 }
 
 /// `auto`'s parameters are those of the methods it chooses between, named `frgr.radius`,
-/// `gradnet.tile_size`, `l1.alpha`, `prior.prior_alpha` (the prior path's L1), ...
+/// `gradnet.tile_pixels`, `l1.alpha`, `prior.prior_alpha` (the prior path's L1), ...
 impl Settings for AutoConfig {
     fn infos(prefix: &str) -> Vec<ParamInfo> {
         let mut all = Rules::infos(prefix);

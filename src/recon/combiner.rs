@@ -34,6 +34,8 @@
 use std::path::PathBuf;
 
 use super::band::{self, BandScope, BAND_TRIM, NOISE_BAND};
+#[cfg(feature = "gradnet")]
+use super::gradnet::tiles::Overlap;
 use super::gradnet::Precision;
 use super::param::{Param, Params, Range};
 use super::poisson_l1::{l1_memory, PoissonL1Config, Preconditioner};
@@ -57,8 +59,10 @@ pub struct CombinerConfig {
     pub runtime: Option<PathBuf>,
     /// Frames of at most this many pixels (after padding) run whole; larger ones in tiles.
     pub whole_pixels: usize,
-    /// Tile side in pixels for frames larger than `whole_pixels`; `0` never tiles.
-    pub tile_size: usize,
+    /// Most pixels a tile holds (its margins included) for frames larger than
+    /// `whole_pixels`, in the shape that runs the fewest pixels (as GradNet's); `0` never
+    /// tiles.
+    pub tile_pixels: usize,
     /// Which embedded graph runs (ignored when [`Self::model`] is given).
     pub precision: Precision,
     /// IRLS steps of the weak candidate's L1 solve (the strong one's are the `prior` preset's).
@@ -88,7 +92,7 @@ impl Default for CombinerConfig {
             model: None,
             runtime: None,
             whole_pixels: 1 << 21,
-            tile_size: 512,
+            tile_pixels: 1 << 18,
             precision: Precision::Int8,
             weak_steps: PoissonL1Config::prior().reweight_steps,
             step_change: STEP_CHANGE,
@@ -107,6 +111,16 @@ impl Default for CombinerConfig {
 pub const INPUTS: [&str; 9] = [
     "prior", "strong", "weak", "color", "variance", "albedo", "normal", "dx", "dy",
 ];
+
+/// How the network's tiles overlap: the graph's input is padded to a multiple of 4 (two 2 x 2
+/// poolings), and a tile reads 24 pixels beyond its core (the receptive field's radius is 20,
+/// measured: a change to one input pixel moves outputs at most 20 pixels away, rounded up to a
+/// multiple of 4).
+#[cfg(feature = "gradnet")]
+const OVERLAP: Overlap = Overlap {
+    margin: 24,
+    multiple: 4,
+};
 
 /// Data-term weight of the weak candidate (the strong one is l1's `prior` preset's).
 const WEAK_ALPHA: f32 = 0.5;
@@ -151,18 +165,19 @@ impl Params for CombinerConfig {
             0,
             i32::MAX as i64,
             "Frames of at most this many pixels (after padding to a multiple of 4) run the \
-             network whole; larger ones run it in tiles of tile_size",
+             network whole; larger ones run it in tiles of at most tile_pixels pixels",
             |c| c.whole_pixels as i64,
             |c, v| c.whole_pixels = v as usize,
         ),
         Param::int(
-            "tile_size",
+            "tile_pixels",
             0,
-            1 << 16,
-            "Tile side in pixels for frames larger than whole_pixels (overlapping square \
-             tiles bound the network's memory); 0 never tiles; otherwise at least 56",
-            |c| c.tile_size as i64,
-            |c, v| c.tile_size = v as usize,
+            i32::MAX as i64,
+            "Most pixels a tile holds, margins included, for frames larger than whole_pixels \
+             (overlapping tiles, in the shape that runs the fewest pixels, bound the \
+             network's memory); 0 never tiles; otherwise at least 56 x 56 = 3136",
+            |c| c.tile_pixels as i64,
+            |c, v| c.tile_pixels = v as usize,
         ),
         Param::choice(
             "precision",
@@ -288,11 +303,12 @@ impl Register for CombinerConfig {
     /// the network's run over one tile (or the whole frame).
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
         let [strong, weak] = candidates(self);
-        let whole = self.tile_size == 0 || width.saturating_mul(height) <= self.whole_pixels;
-        let (tw, th) = if whole {
+        let pixels = width.saturating_mul(height);
+        // A tile holds at most `tile_pixels` pixels, whatever its shape.
+        let (tw, th) = if self.tile_pixels == 0 || pixels <= self.whole_pixels {
             (width, height)
         } else {
-            (self.tile_size, self.tile_size)
+            (self.tile_pixels.min(pixels), 1)
         };
         prior_memory(width, height)
             .saturating_add(l1_memory(&strong, width, height).max(l1_memory(&weak, width, height)))
@@ -313,7 +329,7 @@ mod enabled {
     use ort::value::TensorRef;
     use rayon::prelude::*;
 
-    use super::{candidates, guard, CombinerConfig, Precision};
+    use super::{candidates, guard, CombinerConfig, Precision, OVERLAP};
     use crate::context::Context;
     use crate::error::{Error, Result};
     use crate::frame::{Frame, Layer};
@@ -322,18 +338,11 @@ mod enabled {
     use crate::recon::gradnet::model::{self, ModelBytes, ModelVariant};
     use crate::recon::gradnet::net::{cancellable, input_names, input_shape, output, session};
     use crate::recon::gradnet::runtime;
-    use crate::recon::gradnet::tiles::{self, Overlap, Tile};
+    use crate::recon::gradnet::tiles::{self, Tile};
     use crate::recon::poisson_l1::{PoissonL1, PoissonL1Config};
     use crate::recon::prior::{anchored, Prior, Quality};
     use crate::recon::{repair, Method, Reconstructor};
     use crate::report::{Report, Stage};
-
-    /// Padding multiple of the graph's input (two 2 x 2 poolings).
-    const MULTIPLE: usize = 4;
-
-    /// Pixels a tile reads beyond its core: the receptive field's radius is 20 (measured: a change
-    /// to one input pixel moves outputs at most 20 pixels away), rounded up to a multiple of 4.
-    const MARGIN: usize = 24;
 
     /// Planes of the graph's input (`combiner.py`'s `FEATURES`), and the candidates it weights
     /// (the first three of [`INPUTS`](super::INPUTS)).
@@ -436,16 +445,13 @@ mod enabled {
             width: usize,
             height: usize,
         ) -> Result<Self> {
-            let padded = |n: usize| n.div_ceil(MULTIPLE) * MULTIPLE;
+            let padded = |n: usize| n.div_ceil(OVERLAP.multiple) * OVERLAP.multiple;
             let tiles = tiles::layout(
                 padded(width),
                 padded(height),
                 config.whole_pixels,
-                config.tile_size,
-                Overlap {
-                    margin: MARGIN,
-                    multiple: MULTIPLE,
-                },
+                config.tile_pixels,
+                OVERLAP,
             )?;
             let (th, tw) = (tiles[0].y.size, tiles[0].x.size);
             let rt = runtime::runtime(config.runtime.as_deref())?;

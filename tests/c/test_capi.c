@@ -608,13 +608,13 @@ static void test_gradnet(const char* sample) {
     OK(gdr_frame_get_info(frame, &w, &h, &spp));
     OK(gdr_filter_new(ctx, "gradnet", &f));
     OK(gdr_filter_set_int(f, "whole_pixels", 0)); /* tile even this small frame */
-    OK(gdr_filter_set_int(f, "tile_size", 232));
-    OK(gdr_filter_get_int(f, "tile_size", &tile));
-    CHECK(tile == 232);
+    OK(gdr_filter_set_int(f, "tile_pixels", 232 * 184));
+    OK(gdr_filter_get_int(f, "tile_pixels", &tile));
+    CHECK(tile == 232 * 184);
     OK(gdr_filter_get_bool(f, "bias_correction", &bias));
     CHECK(bias);
     msg = EXPECT(gdr_filter_set_float(f, "alpha", 0.2f), GDR_ERROR_INVALID_ARGUMENT);
-    CONTAINS(msg, "tile_size");
+    CONTAINS(msg, "tile_pixels");
     for (i = 0; i < NLAYERS; i++) {
         OK(gdr_frame_get_layer(frame, layer_names[i], &data, &ch));
         if (data) OK(gdr_filter_set_image_planar(f, layer_names[i], data, w, h, ch, 0, 0));

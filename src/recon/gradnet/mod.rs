@@ -95,10 +95,12 @@ pub struct GradNetConfig {
     /// The feature model's arithmetic (ignored when [`GradNetConfig::model`] is set).
     pub precision: GradNetPrecision,
     /// Frames of at most this many pixels (after padding) run whole, as one tile; larger
-    /// ones run in tiles of `tile_size`.
+    /// ones run in tiles of at most `tile_pixels` pixels.
     pub whole_pixels: usize,
-    /// Tile side in pixels for frames larger than `whole_pixels`; `0` never tiles.
-    pub tile_size: usize,
+    /// Most pixels a tile holds (its margins included) for frames larger than
+    /// `whole_pixels`: the bound on the network's memory. The tiles' shape is the one that
+    /// runs the fewest pixels (`tiles::layout`); `0` never tiles.
+    pub tile_pixels: usize,
     /// Apply the release's Gaussian bias correction.
     pub bias_correction: bool,
     /// Base-colour level beyond the network's range: where any channel of the base colour
@@ -136,7 +138,7 @@ impl Default for GradNetConfig {
             use_features: true,
             precision: GradNetPrecision::Int8,
             whole_pixels: DEFAULT_WHOLE,
-            tile_size: DEFAULT_TILE,
+            tile_pixels: DEFAULT_TILE,
             bias_correction: true,
             range_limit: 2.0,
             bias_limit: BIAS_LIMIT,
@@ -155,14 +157,51 @@ impl Default for GradNetConfig {
 /// no other family by 1 % (docs/gradnet.md, "The bias limit, and int8 as the default").
 pub const BIAS_LIMIT: f32 = 10.0;
 
-/// Default [`GradNetConfig::whole_pixels`]: 2^20, so 1280 x 720 runs whole (the fastest and
-/// most exact run: no overlap) and 1920 x 1080 in tiles.
-pub const DEFAULT_WHOLE: usize = 1 << 20;
+/// Default [`GradNetConfig::whole_pixels`]: 2^21, so 1920 x 1080 runs whole in int8 (the
+/// fastest and most exact run: no overlap), peaking under 4K's tiled peak (docs/gradnet.md,
+/// "Tiles by the pixels they run").
+pub const DEFAULT_WHOLE: usize = 1 << 21;
 
-/// Default [`GradNetConfig::tile_size`]: 3840 x 2160 runs in 45 tiles of 640 x 640 with a
-/// peak under 1.5 GB for the whole CLI, 22-channel bundle included (tiles of 1024: 1.9 GB;
-/// docs/gradnet.md, "Speed and memory").
-pub const DEFAULT_TILE: usize = 640;
+/// Default [`GradNetConfig::tile_pixels`]: 2 x 640 x 640, so 3840 x 2160 runs in 15 int8
+/// tiles of 928 x 848 with a peak under 1.5 GB for the whole CLI, 22-channel bundle
+/// included (docs/gradnet.md, "Tiles by the pixels they run").
+pub const DEFAULT_TILE: usize = 2 * 640 * 640;
+
+/// The share of `whole_pixels` and `tile_pixels` a graph in fp32 runs with (`precision=fp32`,
+/// the no-feature model, a model file): it takes 3x the int8 graph's memory a pixel (888 B
+/// against 294 B, CLI peaks at 540p-1080p), so with half the pixels it keeps the budgets the
+/// fp32 graph had before the int8 one's were raised (1280 x 720 whole, tiles of 640 x 640's
+/// area): 1.5x the int8 graph's memory, not 3x.
+const FP32_SHARE: usize = 2;
+
+/// Bytes a pixel of a network run takes, and the run's fixed share, for the int8 graph and
+/// for an fp32 one (`memory_estimate` says where they come from).
+const INT8_BYTES: (u64, u64) = (350, 96 * super::MIB);
+const FP32_BYTES: (u64, u64) = (900, 192 * super::MIB);
+
+impl GradNetConfig {
+    /// `(whole_pixels, tile_pixels)` for the graph that runs: as set for the int8 graph, a
+    /// [`FP32_SHARE`] of them for an fp32 one.
+    fn budgets(&self, int8: bool) -> (usize, usize) {
+        if int8 {
+            (self.whole_pixels, self.tile_pixels)
+        } else {
+            let least = tiles::GRADNET.min_tile().pow(2);
+            let tile = match self.tile_pixels {
+                0 => 0,
+                t => (t / FP32_SHARE).max(least.min(t)),
+            };
+            (self.whole_pixels / FP32_SHARE, tile)
+        }
+    }
+
+    /// Whether `variant` is the embedded int8 graph (a model file counts as fp32: its memory
+    /// is not known).
+    #[cfg(feature = "gradnet")]
+    fn runs_int8(&self, variant: model::ModelVariant) -> bool {
+        self.model.is_none() && variant == model::ModelVariant::FullInt8
+    }
+}
 
 impl Params for GradNetConfig {
     const TABLE: &'static [Param<Self>] = &[
@@ -171,19 +210,22 @@ impl Params for GradNetConfig {
             0,
             i32::MAX as i64,
             "Frames of at most this many pixels (after padding to a multiple of 8) run whole, \
-             as one tile (fastest, no overlap); larger ones run in tiles of tile_size",
+             as one tile (fastest, no overlap); larger ones run in tiles of at most \
+             tile_pixels pixels. For the int8 graph; a graph in fp32 (precision=fp32, the \
+             no-feature model, a model file) takes half, as it takes 3x the memory a pixel",
             |c| c.whole_pixels as i64,
             |c, v| c.whole_pixels = v as usize,
         ),
         Param::int(
-            "tile_size",
+            "tile_pixels",
             0,
-            1 << 16,
-            "Tile side in pixels (after padding to a multiple of 8) for frames larger than \
-             whole_pixels: overlapping square tiles of this side bound the network's memory; \
-             0 never tiles; otherwise at least 208",
-            |c| c.tile_size as i64,
-            |c, v| c.tile_size = v as usize,
+            i32::MAX as i64,
+            "Most pixels a tile holds, margins included, for frames larger than whole_pixels: \
+             the bound on the network's memory; the overlapping tiles take the shape that runs \
+             the fewest pixels; 0 never tiles; otherwise at least 208 x 208 = 43264. For the \
+             int8 graph; a graph in fp32 takes half (at least 43264)",
+            |c| c.tile_pixels as i64,
+            |c, v| c.tile_pixels = v as usize,
         ),
         Param::bool(
             "bias_correction",
@@ -283,26 +325,41 @@ impl Register for GradNetConfig {
         Some(&mut self.runtime)
     }
 
-    /// Peak RSS of `gdrecon reconstruct -m gradnet` (ONNX Runtime 1.2x, CPU, the demo bundle)
-    /// minus that of `gdrecon info` on the same bundle (the process, and the frame as read):
+    /// Peak RSS of `gdrecon reconstruct -m gradnet` (ONNX Runtime 1.31, CPU, the demo
+    /// bundle, run whole) minus that of `gdrecon info` on the same bundle (the process, and the
+    /// frame as read), fifty-seventh session:
     ///
-    /// | size | peak RSS | baseline | difference |
-    /// | --- | --- | --- | --- |
-    /// | 640 x 360 | 347840 KiB | 51408 KiB | 289 MiB |
-    /// | 1280 x 720 | 986816 KiB | 180216 KiB | 788 MiB |
+    /// | size | `info` | int8 | fp32 (`precision=fp32`) | no-feature model (fp32) |
+    /// | --- | --- | --- | --- | --- |
+    /// | 960 x 540 | 53820 KiB | +201 MiB | +539 MiB | +541 MiB |
+    /// | 1280 x 720 | 89652 KiB | +320 MiB | +912 MiB | |
+    /// | 1920 x 1080 | 190948 KiB | +637 MiB | +1857 MiB | +1769 MiB |
     ///
-    /// The slope is 756 B a pixel and the intercept 123 MiB (the session, its weights); the
-    /// estimate takes 850 B a pixel and 192 MiB for a frame run whole. A tiled frame takes
-    /// that for one tile, plus 64 B a pixel of the frame for what is frame-sized (the output,
-    /// the bias correction's planes, the masks): at 3840 x 2160 in tiles of 640 the estimate
-    /// is 1.08 GB, where the CLI's peak less `info`'s was 0.73 GB.
+    /// Slopes 294 B (int8) and 888 B (fp32) a pixel, intercepts about 55 and 100 MiB; the
+    /// estimate takes [`INT8_BYTES`] and [`FP32_BYTES`]. A tiled frame takes that for one
+    /// tile, plus 64 B a pixel of the frame for what is frame-sized (the output, the bias
+    /// correction's planes, the masks): at 3840 x 2160 the int8 graph's estimate is 0.92 GB
+    /// and the fp32 graph's 1.10 GB, where the CLI's peak less `info`'s was 0.50 and 0.70 GB.
+    /// The int8 configuration is estimated for both graphs (the larger counts), as a frame
+    /// without features runs the fp32 no-feature model.
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
-        let whole = self.tile_size == 0 || width.saturating_mul(height) <= self.whole_pixels;
-        if whole {
-            super::bytes_for(width, height, 850, 192 * super::MIB)
+        let pixels = width.saturating_mul(height);
+        let graph = |int8: bool| {
+            let (whole, tile) = self.budgets(int8);
+            let (per_pixel, fixed) = if int8 { INT8_BYTES } else { FP32_BYTES };
+            if tile == 0 || pixels <= whole {
+                super::bytes_for(width, height, per_pixel, fixed)
+            } else {
+                // A tile holds at most `tile` pixels, whatever its shape.
+                super::bytes_for(tile.min(pixels), 1, per_pixel, fixed)
+                    .saturating_add(super::bytes_for(width, height, 64, 0))
+            }
+        };
+        let int8 = self.model.is_none() && self.precision == GradNetPrecision::Int8;
+        if int8 {
+            graph(true).max(graph(false))
         } else {
-            super::bytes_for(self.tile_size, self.tile_size, 850, 192 * super::MIB)
-                .saturating_add(super::bytes_for(width, height, 64, 0))
+            graph(false)
         }
     }
 }
@@ -339,6 +396,8 @@ mod enabled {
         context: Context,
         map: FrameMap,
         tiles: Vec<Tile>,
+        /// Whether `tiles` are laid out for the int8 graph's budgets (or an fp32 graph's).
+        int8: bool,
         /// `1 x 8 x th x tw` (channel 0 colour, 1..8 features) and `1 x 2 x th x tw`.
         data: Array4<f32>,
         grad: Array4<f32>,
@@ -368,18 +427,19 @@ mod enabled {
             height: usize,
         ) -> Result<Self> {
             let map = FrameMap::new(width, height);
-            let tiles = tiles::layout(
-                map.x.padded_len(),
-                map.y.padded_len(),
-                config.whole_pixels,
-                config.tile_size,
-                tiles::GRADNET,
-            )?;
+            // Lay out for the model most frames will need, and load it now, so the first frame
+            // does not pay.
+            let first = config
+                .precision
+                .variant(config.model.is_some() || config.use_features);
+            let int8 = config.runs_int8(first);
+            let tiles = layout(&config, map, int8)?;
             let (th, tw) = (tiles[0].y.size, tiles[0].x.size);
             let runtime = runtime::runtime(config.runtime.as_deref())?;
             let mut plan = GradNet {
                 map,
                 tiles,
+                int8,
                 data: Array4::zeros((1, 8, th, tw)),
                 grad: Array4::zeros((1, 2, th, tw)),
                 nets: Default::default(),
@@ -387,13 +447,25 @@ mod enabled {
                 context: context.clone(),
                 config,
             };
-            // Load the model most frames will need now, so the first frame does not pay.
-            let first = plan
-                .config
-                .precision
-                .variant(plan.config.model.is_some() || plan.config.use_features);
             plan.net(first)?;
             Ok(plan)
+        }
+
+        /// Lays the tiles out again for the graph that runs, when it is not the one the plan
+        /// laid them out for (a frame without features under the int8 default runs the fp32
+        /// no-feature model, in smaller tiles), with buffers for them.
+        fn lay_out_for(&mut self, int8: bool) -> Result<()> {
+            if int8 == self.int8 {
+                return Ok(());
+            }
+            let tiles = layout(&self.config, self.map, int8)?;
+            let (th, tw) = (tiles[0].y.size, tiles[0].x.size);
+            if self.data.dim() != (1, 8, th, tw) {
+                self.data = Array4::zeros((1, 8, th, tw));
+                self.grad = Array4::zeros((1, 2, th, tw));
+            }
+            (self.tiles, self.int8) = (tiles, int8);
+            Ok(())
         }
 
         /// The network for `variant` (ignored when a model file is configured), loaded into
@@ -432,6 +504,13 @@ mod enabled {
             self.nets[slot] = Some(net.clone());
             Ok(net)
         }
+    }
+
+    /// The tiles of `config`'s budgets for the int8 graph or an fp32 one.
+    fn layout(config: &GradNetConfig, map: FrameMap, int8: bool) -> Result<Vec<Tile>> {
+        let (whole, tile) = config.budgets(int8);
+        let (w, h) = (map.x.padded_len(), map.y.padded_len());
+        tiles::layout(w, h, whole, tile, tiles::GRADNET)
     }
 
     /// Copies the frame's colour into `out` over `tile`'s core (inside the frame).
@@ -569,6 +648,7 @@ mod enabled {
                 None
             };
             let variant = self.config.precision.variant(norm.is_some());
+            self.lay_out_for(self.config.runs_int8(variant))?;
             let net = self.net(variant)?;
             let mut net = net.lock().unwrap_or_else(|p| p.into_inner());
             let use_features = net.data_channels == 8;

@@ -106,25 +106,91 @@ pub(crate) struct Tile {
 }
 
 /// Tiles covering a padded `width x height` frame: one tile when the frame has at most
-/// `whole` pixels or `max == 0`, whatever its shape (1280 x 720 under the default 2^20: the
-/// cheapest and most exact run); square tiles of side `max` otherwise.
+/// `whole` pixels or `budget == 0`, whatever its shape (1280 x 720 and 1920 x 1080 under the
+/// default 2^21: the cheapest and most exact run); otherwise the fewest-pixels layout of
+/// equal tiles of at most `budget` pixels each.
+///
+/// Every tile costs the network time in proportion to its pixels, margins included, so the
+/// layout is chosen by the pixels it runs (tiles times tile area), not by a fixed shape:
+/// square tiles of a fixed side waste their margins on frames they do not divide (at
+/// 3840 x 2160, 45 tiles of 640 x 640 ran 2.2x the frame's pixels; 15 tiles of 928 x 848,
+/// under twice their pixels each, run 1.42x). Each candidate tile height (a multiple of the overlap's
+/// `multiple`, or the whole height) takes the widest tile the budget allows, then both sides
+/// shrink to the least that keeps their tile counts; the candidate running the fewest pixels
+/// wins (then the fewest tiles).
 pub(crate) fn layout(
     width: usize,
     height: usize,
     whole: usize,
-    max: usize,
+    budget: usize,
     overlap: Overlap,
 ) -> Result<Vec<Tile>> {
-    let max = if max == 0 || width.saturating_mul(height) <= whole {
-        usize::MAX
+    let (h, w) = if budget == 0 || width.saturating_mul(height) <= whole {
+        (height, width)
     } else {
-        max
+        shape(width, height, budget, overlap)?
     };
-    let (ys, xs) = (split(height, max, overlap)?, split(width, max, overlap)?);
+    let (ys, xs) = (split(height, h, overlap)?, split(width, w, overlap)?);
     Ok(ys
         .iter()
         .flat_map(|&y| xs.iter().map(move |&x| Tile { y, x }))
         .collect())
+}
+
+/// The tile `(height, width)` of [`layout`] for a frame that does not run whole.
+fn shape(width: usize, height: usize, budget: usize, overlap: Overlap) -> Result<(usize, usize)> {
+    let min = overlap.min_tile();
+    // The least tile: `min` along an axis that is cut, the whole of one shorter than that.
+    let (least_h, least_w) = (min.min(height), min.min(width));
+    if budget < least_h * least_w {
+        return Err(Error::arg(format!(
+            "tile_pixels {budget} is too small: a tile of this frame needs at least \
+             {least_w} x {least_h} = {} pixels ({} of overlap on each side, for the network's \
+             receptive field)",
+            least_h * least_w,
+            overlap.margin
+        )));
+    }
+    let step = overlap.multiple;
+    // Tile heights to try: the whole height, and every multiple of `step` that leaves a core.
+    let heights = std::iter::once(height).chain((min..height).step_by(step));
+    let mut best: Option<(usize, usize, usize, usize)> = None; // (pixels, tiles, h, w)
+    for h in heights {
+        let widest = (budget / h / step * step).min(width);
+        if widest < width && widest < min {
+            continue; // too tall for the budget to leave a tile across the frame's width
+        }
+        let (ny, nx) = (count(height, h, overlap), count(width, widest, overlap));
+        let (h, w) = (fit(height, ny, overlap), fit(width, nx, overlap));
+        let (pixels, tiles) = (nx * ny * h * w, nx * ny);
+        if best.is_none_or(|(p, t, _, _)| (pixels, tiles) < (p, t)) {
+            best = Some((pixels, tiles, h, w));
+        }
+    }
+    let (_, _, h, w) = best.expect("the budget holds the least tile, which is a candidate");
+    Ok((h, w))
+}
+
+/// How many spans [`split`] cuts an axis of length `n` into with spans of `size`.
+fn count(n: usize, size: usize, overlap: Overlap) -> usize {
+    if size >= n {
+        return 1;
+    }
+    // k spans cover `k size - 2 margin (k - 1)` pixels (their margins inside the axis).
+    let core = size - 2 * overlap.margin;
+    (n - 2 * overlap.margin).div_ceil(core)
+}
+
+/// The least span size (a multiple of the overlap's `multiple`, or `n`) that cuts an axis of
+/// length `n` into at most `spans` spans.
+fn fit(n: usize, spans: usize, overlap: Overlap) -> usize {
+    if spans <= 1 {
+        return n;
+    }
+    let Overlap { margin, multiple } = overlap;
+    // From `spans size - 2 margin (spans - 1) >= n`.
+    let size = (n + 2 * margin * (spans - 1)).div_ceil(spans);
+    size.div_ceil(multiple) * multiple
 }
 
 #[cfg(test)]
@@ -172,29 +238,104 @@ mod tests {
     }
 
     #[test]
-    fn small_frames_are_one_tile_and_small_tiles_are_refused() {
-        let whole = 1 << 20;
+    fn small_frames_are_one_tile_and_small_budgets_are_refused() {
+        let whole = 1 << 21;
+        let budget = 1 << 20;
         assert_eq!(layout(720, 1280, 0, 0, GRADNET).unwrap().len(), 1);
-        assert_eq!(layout(1280, 720, 0, 1280, GRADNET).unwrap().len(), 1);
-        // Within the pixel budget: one tile even though 1280 > 640.
-        assert_eq!(layout(1280, 720, whole, 640, GRADNET).unwrap().len(), 1);
-        assert_eq!(layout(8192, 8, whole, 640, GRADNET).unwrap().len(), 1);
-        // Over it: tiles, even for a frame smaller than a tile's area.
-        assert_eq!(
-            layout(1280, 720, 1280 * 720 - 1, 1024, GRADNET)
-                .unwrap()
-                .len(),
-            2
-        );
-        // 4K: square tiles of 640, and of 1024.
-        let k4 = layout(3840, 2160, whole, 640, GRADNET).unwrap();
-        assert!(k4.iter().all(|t| t.x.size == 640 && t.y.size == 640));
-        assert_eq!(k4.len(), 9 * 5);
-        assert_eq!(
-            layout(3840, 2160, whole, 1024, GRADNET).unwrap().len(),
-            5 * 3
-        );
-        let err = layout(1024, 1024, 0, 100, GRADNET).unwrap_err().to_string();
-        assert!(err.contains("too small"), "{err}");
+        assert_eq!(layout(1280, 720, 0, 1280 * 720, GRADNET).unwrap().len(), 1);
+        // Within the pixel budget: one tile, whatever the tile budget.
+        assert_eq!(layout(1920, 1080, whole, budget, GRADNET).unwrap().len(), 1);
+        assert_eq!(layout(8192, 8, whole, 640 * 640, GRADNET).unwrap().len(), 1);
+        // Over it: tiles of at most the tile budget; one when the frame is within it.
+        assert_eq!(layout(1280, 720, 0, 1 << 20, GRADNET).unwrap().len(), 1);
+        let halves = layout(1280, 720, 0, 1280 * 720 * 3 / 5, GRADNET).unwrap();
+        assert_eq!(halves.len(), 2);
+        assert!(halves.iter().all(|t| t.x.size == 736 && t.y.size == 720));
+        // 4K under 2^20 pixels a tile: 4 x 3 tiles of 1104 x 848, 1.35x the frame's pixels
+        // (45 square tiles of 640 ran 2.2x).
+        let k4 = layout(3840, 2160, whole, budget, GRADNET).unwrap();
+        assert_eq!(k4.len(), 12);
+        assert!(k4.iter().all(|t| t.x.size == 1104 && t.y.size == 848));
+        let err = layout(1024, 1024, 0, 207 * 207, GRADNET)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("tile_pixels 42849 is too small"), "{err}");
+        assert!(layout(1024, 1024, 0, 208 * 208, GRADNET).is_ok());
+        // An axis shorter than the least tile is never cut: the least tile is that short.
+        assert_eq!(layout(320, 184, 0, 232 * 184, GRADNET).unwrap().len(), 4);
+        assert!(layout(320, 184, 0, 208 * 184 - 1, GRADNET).is_err());
+    }
+
+    /// Pixels a layout with tiles of `h x w` runs, by [`split`] itself.
+    fn pixels(width: usize, height: usize, h: usize, w: usize, overlap: Overlap) -> usize {
+        let ny = split(height, h, overlap).unwrap().len();
+        let nx = split(width, w, overlap).unwrap().len();
+        nx * ny * h * w
+    }
+
+    #[test]
+    fn layouts_tile_the_frame_in_the_fewest_pixels() {
+        let small = Overlap {
+            margin: 12,
+            multiple: 4,
+        };
+        for overlap in [GRADNET, small] {
+            let (min, step) = (overlap.min_tile(), overlap.multiple);
+            let sizes = [
+                step,
+                min - step,
+                min,
+                min + 5 * step,
+                min + 45 * step,
+                min + 200 * step,
+            ];
+            for &width in &sizes {
+                for &height in &sizes {
+                    let least = min.min(width) * min.min(height);
+                    for budget in [
+                        least,
+                        min * (min + 3 * step),
+                        3 * min * min,
+                        width * height / 2,
+                    ] {
+                        if budget < least {
+                            continue;
+                        }
+                        let tiles = layout(width, height, 0, budget, overlap).unwrap();
+                        let (h, w) = (tiles[0].y.size, tiles[0].x.size);
+                        // Equal tiles within the budget whose cores cover every pixel once.
+                        assert!(h * w <= budget, "{width} x {height} budget {budget}");
+                        let mut covered = vec![0u8; width * height];
+                        for t in &tiles {
+                            assert_eq!((t.y.size, t.x.size), (h, w));
+                            for y in t.y.core_start..t.y.core_end {
+                                for x in t.x.core_start..t.x.core_end {
+                                    covered[y * width + x] += 1;
+                                }
+                            }
+                        }
+                        assert!(covered.iter().all(|&c| c == 1));
+                        // No equal-tile layout within the budget runs fewer pixels.
+                        let sides = |n: usize| {
+                            std::iter::once(n)
+                                .chain((min..n).step_by(step))
+                                .collect::<Vec<_>>()
+                        };
+                        let fewest = sides(height)
+                            .into_iter()
+                            .flat_map(|h| sides(width).into_iter().map(move |w| (h, w)))
+                            .filter(|&(h, w)| h * w <= budget)
+                            .map(|(h, w)| pixels(width, height, h, w, overlap))
+                            .min()
+                            .unwrap();
+                        assert_eq!(
+                            tiles.len() * h * w,
+                            fewest,
+                            "{width} x {height} budget {budget}: {h} x {w}"
+                        );
+                    }
+                }
+            }
+        }
     }
 }
