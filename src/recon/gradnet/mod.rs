@@ -382,7 +382,7 @@ mod enabled {
     use crate::context::Context;
     use crate::error::{Error, Result};
     use crate::frame::Frame;
-    use crate::image::Image;
+    use crate::image::{try_vec, Image};
     use crate::progress::Progress;
     use crate::recon::converged::converged_mask;
     use crate::recon::{Method, Reconstructor};
@@ -461,8 +461,15 @@ mod enabled {
             let tiles = layout(&self.config, self.map, int8)?;
             let (th, tw) = (tiles[0].y.size, tiles[0].x.size);
             if self.data.dim() != (1, 8, th, tw) {
-                self.data = Array4::zeros((1, 8, th, tw));
-                self.grad = Array4::zeros((1, 2, th, tw));
+                // In an execution: refused as out of memory, never an abort (#18).
+                let buffer = |planes: usize| {
+                    let data = try_vec(planes * th * tw, 0.0f32)?;
+                    Ok::<_, Error>(
+                        Array4::from_shape_vec((1, planes, th, tw), data)
+                            .expect("the length is the shape's"),
+                    )
+                };
+                (self.data, self.grad) = (buffer(8)?, buffer(2)?);
             }
             (self.tiles, self.int8) = (tiles, int8);
             Ok(())
