@@ -434,14 +434,14 @@ mod enabled {
                 .variant(config.model.is_some() || config.use_features);
             let int8 = config.runs_int8(first);
             let tiles = layout(&config, map, int8)?;
-            let (th, tw) = (tiles[0].y.size, tiles[0].x.size);
+            let (data, grad) = buffers(tiles[0])?;
             let runtime = runtime::runtime(config.runtime.as_deref())?;
             let mut plan = GradNet {
                 map,
                 tiles,
                 int8,
-                data: Array4::zeros((1, 8, th, tw)),
-                grad: Array4::zeros((1, 2, th, tw)),
+                data,
+                grad,
                 nets: Default::default(),
                 runtime_path: runtime.path.display().to_string(),
                 context: context.clone(),
@@ -459,17 +459,8 @@ mod enabled {
                 return Ok(());
             }
             let tiles = layout(&self.config, self.map, int8)?;
-            let (th, tw) = (tiles[0].y.size, tiles[0].x.size);
-            if self.data.dim() != (1, 8, th, tw) {
-                // In an execution: refused as out of memory, never an abort (#18).
-                let buffer = |planes: usize| {
-                    let data = try_vec(planes * th * tw, 0.0f32)?;
-                    Ok::<_, Error>(
-                        Array4::from_shape_vec((1, planes, th, tw), data)
-                            .expect("the length is the shape's"),
-                    )
-                };
-                (self.data, self.grad) = (buffer(8)?, buffer(2)?);
+            if self.data.dim() != (1, 8, tiles[0].y.size, tiles[0].x.size) {
+                (self.data, self.grad) = buffers(tiles[0])?;
             }
             (self.tiles, self.int8) = (tiles, int8);
             Ok(())
@@ -518,6 +509,20 @@ mod enabled {
         let (whole, tile) = config.budgets(int8);
         let (w, h) = (map.x.padded_len(), map.y.padded_len());
         tiles::layout(w, h, whole, tile, tiles::GRADNET)
+    }
+
+    /// One tile's input buffers, `1 x 8 x th x tw` and `1 x 2 x th x tw`, zeroed; out of
+    /// memory is an error, never an abort (#18: a re-layout allocates them in an execution).
+    fn buffers(tile: Tile) -> Result<(Array4<f32>, Array4<f32>)> {
+        let (th, tw) = (tile.y.size, tile.x.size);
+        let buffer = |planes: usize| {
+            let data = try_vec(planes * th * tw, 0.0f32)?;
+            Ok::<_, Error>(
+                Array4::from_shape_vec((1, planes, th, tw), data)
+                    .expect("the length is the shape's"),
+            )
+        };
+        Ok((buffer(8)?, buffer(2)?))
     }
 
     /// Copies the frame's colour into `out` over `tile`'s core (inside the frame).
