@@ -232,6 +232,54 @@ fn an_fp32_graph_runs_in_tiles_of_half_the_budgets() {
     assert_eq!(int8.as_slice(), run(&frame, whole).unwrap().as_slice());
 }
 
+/// `max_memory_mb` tiles each graph by its own bytes a pixel: just under the estimate of the
+/// default (the fp32 no-feature model's, run whole), a featureless frame runs the fp32 model
+/// in tiles and a frame with features still runs the int8 graph whole; the images are those
+/// of a plan without a limit. Under the least tiles' estimate the plan is refused.
+#[test]
+fn a_memory_limit_tiles_each_graph_by_its_own_bytes() {
+    let frame = sample();
+    let featureless = without_features(frame.clone());
+    let config = MethodConfig::GradNet(GradNetConfig::default());
+    let (w, h) = (frame.width(), frame.height());
+    let mib = |bytes: u64| bytes.div_ceil(1 << 20);
+    let limited = |mb: u64| {
+        let options = ContextOptions::with_threads(Some(2)).with_max_memory_mb(mb);
+        Plan::new(&Context::new(options).unwrap(), &config, w, h)
+    };
+    let limit = mib(config.memory_estimate(w, h)) - 2;
+    let mut plan = limited(limit).unwrap();
+    let tiles = |report: &gdrecon::Report| {
+        report
+            .notes
+            .iter()
+            .find_map(|n| {
+                n.split(", ")
+                    .find(|p| p.contains("tile(s)"))
+                    .map(str::to_owned)
+            })
+            .unwrap()
+    };
+    let (fp32, report) = plan.execute(&featureless, &Progress::none()).unwrap();
+    assert!(!tiles(&report).starts_with("1 tile(s)"), "{report:?}");
+    let (int8, report) = plan.execute(&frame, &Progress::none()).unwrap();
+    assert_eq!(tiles(&report), "1 tile(s) of 320 x 184");
+    let free = GradNetConfig::default();
+    assert_close(
+        &fp32,
+        &run(&featureless, free.clone()).unwrap(),
+        "fp32 fitted",
+    );
+    assert_eq!(int8.as_slice(), run(&frame, free).unwrap().as_slice());
+    let least = mib(config.fitted_to(w, h, 0).memory_estimate(w, h));
+    limited(least).unwrap();
+    let err = limited(least - 1).unwrap_err();
+    assert!(
+        matches!(err, gdrecon::Error::OutOfMemory(_)) && err.to_string().contains("gradnet"),
+        "{err}"
+    );
+}
+
 #[test]
 fn plans_reuse_the_context_session_and_report_what_ran() {
     let frame = crop("crop_a");

@@ -375,3 +375,77 @@ fn an_execution_whose_allocation_fails_returns_out_of_memory() {
     }
     print!("{table}");
 }
+
+/// `max_memory_mb` sizes tiles (`MethodConfig::fitted_to`, what `Plan::new` plans): for every
+/// method, size and limit, the fitted estimate is within the limit or at the method's least
+/// (its estimate under a limit of 0), never above the unfitted estimate, and a limit the
+/// estimate already fits changes nothing.
+#[test]
+fn a_memory_limit_fits_the_estimate_or_leaves_it_at_its_least() {
+    const MIB: u64 = 1 << 20;
+    for method in Method::ALL {
+        let config = MethodConfig::default_for(method);
+        for (w, h) in [(320, 180), (1920, 1080), (3840, 2160)] {
+            let full = config.memory_estimate(w, h);
+            assert_eq!(config.fitted_to(w, h, full), config, "{method} {w} x {h}");
+            let least = config.fitted_to(w, h, 0).memory_estimate(w, h);
+            assert!(least <= full, "{method} {w} x {h}");
+            let mut previous = least;
+            for step in 0..=16 {
+                let limit = least.saturating_sub(MIB) + (full - least + MIB) * step / 16;
+                let fitted = config.fitted_to(w, h, limit).memory_estimate(w, h);
+                assert!(
+                    fitted <= limit.max(least) && fitted <= full && fitted >= previous,
+                    "{method} {w} x {h}: limit {limit}, fitted {fitted}, least {least}, full {full}"
+                );
+                previous = fitted;
+            }
+        }
+    }
+    // The methods that tile have room to fit at 4K.
+    for method in [
+        Method::GradNet,
+        Method::Combiner,
+        Method::Prior,
+        Method::Auto,
+    ] {
+        let config = MethodConfig::default_for(method);
+        let least = config.fitted_to(3840, 2160, 0).memory_estimate(3840, 2160);
+        assert!(
+            least + 256 * MIB < config.memory_estimate(3840, 2160),
+            "{method}"
+        );
+    }
+}
+
+#[test]
+fn a_plan_over_the_limit_is_fitted_and_refused_only_under_its_least() {
+    let _serial = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
+    const MIB: u64 = 1 << 20;
+    let (w, h) = (1920, 1080);
+    // The prior needs no library to plan; OIDN's scratch is what a limit lowers.
+    let config = MethodConfig::default_for(Method::Prior);
+    let full = config.memory_estimate(w, h).div_ceil(MIB);
+    let least = config
+        .fitted_to(w, h, 0)
+        .memory_estimate(w, h)
+        .div_ceil(MIB);
+    assert!(least < full, "{least} {full}");
+    let plan = |mb: u64| {
+        let context =
+            Context::new(ContextOptions::with_threads(Some(1)).with_max_memory_mb(mb)).unwrap();
+        Plan::new(&context, &config, w, h)
+    };
+    plan(least).unwrap();
+    let err = plan(least - 1).unwrap_err();
+    assert!(
+        matches!(err, Error::OutOfMemory(_))
+            && err
+                .to_string()
+                .contains(&format!("needs about {least} MiB"))
+            && err
+                .to_string()
+                .contains(&format!("max_memory_mb = {}", least - 1)),
+        "{err}"
+    );
+}

@@ -343,3 +343,20 @@ fn a_bundle_with_a_prior_layer_needs_no_oidn() {
         "{text}"
     );
 }
+
+/// Under `max_memory_mb` OIDN gets less scratch (`maxMemoryMB` 512 instead of 1024 here) and
+/// denoises in tiles: the same image, bit for bit.
+#[test]
+fn a_memory_limit_tiles_oidn_to_the_same_image() {
+    let (w, h) = (1280, 768); // 580 B a pixel of scratch: 544 MiB, over 512
+    let frame = gdrecon::synth::synthetic_frame(w, h, 8.0, 7);
+    let config = MethodConfig::default_for(Method::Prior);
+    let least = config.fitted_to(w, h, 0).memory_estimate(w, h);
+    assert!(least < config.memory_estimate(w, h));
+    let options = ContextOptions::with_threads(Some(2)).with_max_memory_mb(least.div_ceil(1 << 20));
+    let context = Context::new(options).unwrap();
+    let mut plan = Plan::new(&context, &config, w, h).unwrap();
+    let (tiled, _) = plan.execute(&frame, &Progress::none()).unwrap();
+    let (whole, _) = run(&frame, &config);
+    assert_eq!(tiled.as_slice(), whole.as_slice());
+}

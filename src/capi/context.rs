@@ -223,11 +223,13 @@ pub unsafe extern "C" fn gdr_context_release(ctx: *mut *mut gdr_context) -> gdr_
 
 /// Set an integer parameter: `"threads"` (0 = all cores; before commit), `"max_memory_mb"` (before commit) or `"log_level"` (a `gdr_log_level`, any time).
 ///
-/// `"max_memory_mb"`: the most memory, in MiB, one filter's plan may need; `gdr_filter_commit`
+/// `"max_memory_mb"`: the most memory, in MiB, one filter's plan may need beyond its images.
+/// As OIDN's `maxMemoryMB`, it sizes tiles: GradNet, the combiner and OIDN's scratch (down to
+/// 512 MiB) run in smaller tiles to fit, the same image up to rounding in more time. `gdr_filter_commit`
 /// refuses a method and size whose estimate (buffers, scratch, output, OIDN's or ONNX
-/// Runtime's share) exceeds it with `GDR_ERROR_OUT_OF_MEMORY` and a message giving the estimate
-/// and the limit. 0 (the default) is no limit. On Linux a commit is also refused when the
-/// estimate exceeds the address space left under the process's limit (`ulimit -v`).
+/// Runtime's share) is over it even so with `GDR_ERROR_OUT_OF_MEMORY` and a message giving the
+/// estimate and the limit. 0 (the default) is no limit. On Linux the address space left under
+/// the process's limit (`ulimit -v`) bounds a commit the same way.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_context_set_int(
     ctx: *mut gdr_context,

@@ -34,7 +34,7 @@
 
 use super::param::{Param, ParamInfo, Params, Settings, Value};
 use super::{
-    CombinerConfig, FrgrConfig, GradNetConfig, Method, MethodConfig, PoissonL1Config,
+    fit_within, CombinerConfig, FrgrConfig, GradNetConfig, Method, MethodConfig, PoissonL1Config,
     Reconstructor, Register,
 };
 use crate::context::Context;
@@ -280,6 +280,15 @@ impl Register for AutoConfig {
         .into_iter()
         .max()
         .unwrap_or(0)
+    }
+
+    /// Fits each path over the limit on its own, as the estimate takes the largest.
+    fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
+        fit_within(&mut self.frgr, width, height, limit);
+        fit_within(&mut self.gradnet, width, height, limit);
+        fit_within(&mut self.l1, width, height, limit);
+        fit_within(&mut self.prior, width, height, limit);
+        fit_within(&mut self.combiner, width, height, limit);
     }
 }
 

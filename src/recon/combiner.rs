@@ -34,12 +34,11 @@
 use std::path::PathBuf;
 
 use super::band::{self, BandScope, BAND_TRIM, NOISE_BAND};
-#[cfg(feature = "gradnet")]
 use super::gradnet::tiles::Overlap;
 use super::gradnet::Precision;
 use super::param::{Param, Params, Range};
 use super::poisson_l1::{l1_memory, PoissonL1Config, Preconditioner};
-use super::prior::prior_memory;
+use super::prior::{prior_memory, Scratch};
 use super::{bytes_for, Reconstructor, Register, MIB};
 use crate::context::Context;
 use crate::error::Result;
@@ -84,6 +83,9 @@ pub struct CombinerConfig {
     pub band_emitters: bool,
     /// Where the band clamps: as the `prior` preset of `l1`, beside emitters' edges only.
     pub band_scope: BandScope,
+    /// OIDN's scratch memory when it computes the prior: lowered by a memory limit
+    /// ([`Register::fit_memory`]), not a parameter.
+    pub(crate) scratch: Scratch,
 }
 
 impl Default for CombinerConfig {
@@ -102,6 +104,7 @@ impl Default for CombinerConfig {
             band_trim: BAND_TRIM,
             band_emitters: true,
             band_scope: BandScope::Edges,
+            scratch: Scratch::default(),
         }
     }
 }
@@ -116,7 +119,6 @@ pub const INPUTS: [&str; 9] = [
 /// poolings), and a tile reads 24 pixels beyond its core (the receptive field's radius is 20,
 /// measured: a change to one input pixel moves outputs at most 20 pixels away, rounded up to a
 /// multiple of 4).
-#[cfg(feature = "gradnet")]
 const OVERLAP: Overlap = Overlap {
     margin: 24,
     multiple: 4,
@@ -302,7 +304,6 @@ impl Register for CombinerConfig {
     /// The prior's share, the L1 solve (one plan for both candidates) and both outputs, and
     /// the network's run over one tile (or the whole frame).
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
-        let [strong, weak] = candidates(self);
         let pixels = width.saturating_mul(height);
         // A tile holds at most `tile_pixels` pixels, whatever its shape.
         let (tw, th) = if self.tile_pixels == 0 || pixels <= self.whole_pixels {
@@ -310,11 +311,46 @@ impl Register for CombinerConfig {
         } else {
             (self.tile_pixels.min(pixels), 1)
         };
-        prior_memory(width, height)
-            .saturating_add(l1_memory(&strong, width, height).max(l1_memory(&weak, width, height)))
-            // the candidates and the guard's mask
-            .saturating_add(bytes_for(width, height, 5 * 12 + 1, 0))
+        prior_memory(width, height, self.scratch)
+            .saturating_add(self.solve_memory(width, height))
             .saturating_add(bytes_for(tw, th, NET_BYTES, NET_FIXED))
+    }
+
+    /// Lowers OIDN's scratch to what `limit` leaves beside the rest at the network's own
+    /// budgets (OIDN in tiles costs less time than the network in small ones), then the
+    /// network's budgets to what is left; a tile is never lowered below the least the network
+    /// runs, so that a limit under it is refused.
+    fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
+        let solve = self.solve_memory(width, height);
+        let network = self
+            .memory_estimate(width, height)
+            .saturating_sub(prior_memory(width, height, self.scratch))
+            .saturating_sub(solve);
+        self.scratch
+            .fit(width, height, limit, solve.saturating_add(network));
+        if self.memory_estimate(width, height) <= limit {
+            return;
+        }
+        let taken = prior_memory(width, height, self.scratch).saturating_add(solve);
+        let most = super::pixels_within(limit, taken, NET_BYTES, NET_FIXED);
+        self.whole_pixels = self.whole_pixels.min(most);
+        if self.tile_pixels > 0 {
+            self.tile_pixels = self.tile_pixels.min(most.max(LEAST_TILE));
+        }
+    }
+}
+
+/// The fewest pixels a network tile holds (both sides [`OVERLAP`]'s least).
+const LEAST_TILE: usize = OVERLAP.min_tile() * OVERLAP.min_tile();
+
+impl CombinerConfig {
+    /// What the combiner holds besides the prior and the network's run: the L1 solve (one
+    /// plan for both candidates), the candidates and the guard's mask.
+    fn solve_memory(&self, width: usize, height: usize) -> u64 {
+        let [strong, weak] = candidates(self);
+        l1_memory(&strong, width, height)
+            .max(l1_memory(&weak, width, height))
+            .saturating_add(bytes_for(width, height, 5 * 12 + 1, 0))
     }
 }
 
@@ -474,7 +510,7 @@ mod enabled {
             })?;
             let candidates = candidates(&config);
             Ok(Combiner {
-                prior: Prior::new(context, width, height, Quality::High)?,
+                prior: Prior::new(context, width, height, Quality::High, config.scratch)?,
                 solve: PoissonL1::new_for(&candidates, width, height)?,
                 candidates,
                 outputs: [

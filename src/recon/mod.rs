@@ -115,6 +115,29 @@ pub(crate) trait Register: Settings + Clone {
     /// network's share), beyond the frame itself. [`Plan::new`] compares it with the
     /// context's `max_memory_mb` and the address space the process has left.
     fn memory_estimate(&self, width: usize, height: usize) -> u64;
+
+    /// Lowers what this configuration may run at once (a network's whole-frame and tile
+    /// budgets) so that [`Register::memory_estimate`] for `width` x `height` stays within
+    /// `limit` bytes where smaller tiles can make it: the context's `max_memory_mb` bounds
+    /// memory by tiling, as OIDN's `maxMemoryMB` does, and refuses a plan only when the
+    /// smallest tiles are still over it. Budgets are never raised. Default: nothing to lower.
+    fn fit_memory(&mut self, _width: usize, _height: usize, _limit: u64) {}
+}
+
+/// [`Register::fit_memory`] where `config`'s estimate is over `limit`: a configuration that
+/// fits is left as it is.
+pub(crate) fn fit_within<C: Register>(config: &mut C, width: usize, height: usize, limit: u64) {
+    if config.memory_estimate(width, height) > limit {
+        config.fit_memory(width, height, limit);
+    }
+}
+
+/// The most pixels a run taking `bytes_per_pixel` and `fixed` bytes may hold when `taken`
+/// bytes are already spoken for, under `limit`: the inverse of [`bytes_for`] that
+/// [`Register::fit_memory`] sizes tiles with.
+pub(crate) fn pixels_within(limit: u64, taken: u64, bytes_per_pixel: u64, fixed: u64) -> usize {
+    let left = limit.saturating_sub(taken.saturating_add(fixed));
+    usize::try_from(left / bytes_per_pixel.max(1)).unwrap_or(usize::MAX)
 }
 
 /// `bytes_per_pixel` bytes for each pixel of a `width` x `height` frame plus `fixed` bytes,
@@ -288,6 +311,7 @@ trait RegisterDyn {
     fn gradnet_dyn(&mut self) -> Option<&mut GradNetConfig>;
     fn runtime_dyn(&mut self) -> Option<&mut Option<PathBuf>>;
     fn memory_dyn(&self, width: usize, height: usize) -> u64;
+    fn fit_memory_dyn(&mut self, width: usize, height: usize, limit: u64);
 }
 
 impl<C: Register> RegisterDyn for C {
@@ -312,6 +336,10 @@ impl<C: Register> RegisterDyn for C {
 
     fn memory_dyn(&self, width: usize, height: usize) -> u64 {
         self.memory_estimate(width, height)
+    }
+
+    fn fit_memory_dyn(&mut self, width: usize, height: usize, limit: u64) {
+        fit_within(self, width, height, limit);
     }
 }
 
@@ -406,6 +434,17 @@ impl MethodConfig {
         self.register_ref().memory_dyn(width, height)
     }
 
+    /// This configuration with its tile budgets lowered so that its estimate for `width` x
+    /// `height` frames fits in `limit` bytes where tiles can make it fit (GradNet, the
+    /// combiner, OIDN on the prior paths, and `auto`'s), as [`Plan::new`] does under the
+    /// context's `max_memory_mb` and the address space the process has left; unchanged when
+    /// the estimate already fits, and for the methods that do not tile.
+    pub fn fitted_to(&self, width: usize, height: usize, limit: u64) -> MethodConfig {
+        let mut fitted = self.clone();
+        fitted.register().fit_memory_dyn(width, height, limit);
+        fitted
+    }
+
     pub(crate) fn instantiate(
         &self,
         context: &Context,
@@ -437,6 +476,10 @@ impl Plan {
                 "plan size is {width} x {height}: an image needs at least one pixel"
             )));
         }
+        // Tiles sized to the limit first: only a plan whose smallest tiles are over it is
+        // refused.
+        let fitted = memory_limit(context).map(|limit| config.fitted_to(width, height, limit));
+        let config = fitted.as_ref().unwrap_or(config);
         check_memory(context, config, width, height)?;
         let inner = context.install(|| config.instantiate(context, width, height))?;
         Ok(Plan {
@@ -517,6 +560,19 @@ impl fmt::Debug for Plan {
             .field("width", &self.width)
             .field("height", &self.height)
             .finish()
+    }
+}
+
+/// The bytes a plan may take: the context's `max_memory_mb` and, on Linux, the address
+/// space left under `RLIMIT_AS`, whichever is less; `None` when neither limits it.
+fn memory_limit(context: &Context) -> Option<u64> {
+    let set = match context.max_memory_mb() {
+        0 => None,
+        mb => Some(mb.saturating_mul(MIB)),
+    };
+    match (set, address_space_left()) {
+        (Some(a), Some(b)) => Some(a.min(b)),
+        (a, b) => a.or(b),
     }
 }
 

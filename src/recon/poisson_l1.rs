@@ -47,7 +47,7 @@ use super::multigrid::{multigrid_bytes, Multigrid};
 use super::ops::{apply_weighted, plane_sums, row_sum, weighted_row, Dims, Operator, RowWeights};
 use super::param::{choices, Param, Params, Preset, Range};
 use super::poisson_l2::{ALPHA_RANGE, DEFAULT_ALPHA};
-use super::prior::{prior_memory, DataTerm, OnPrior, DATA_DOC, PRIOR_ALPHA_DOC};
+use super::prior::{prior_memory, DataTerm, OnPrior, Scratch, DATA_DOC, PRIOR_ALPHA_DOC};
 use super::{bytes_for, Method, Reconstructor, Register, MIB};
 use crate::context::Context;
 use crate::error::Result;
@@ -99,6 +99,9 @@ pub struct PoissonL1Config {
     pub band_emitters: bool,
     /// Where the band clamps: every pixel, or only beside an emitter's edge (`recon/band.rs`).
     pub band_scope: BandScope,
+    /// OIDN's scratch memory when it computes the prior: lowered by a memory limit
+    /// ([`Register::fit_memory`]), not a parameter.
+    pub(crate) scratch: Scratch,
 }
 
 /// The preconditioner of each IRLS step's conjugate gradients.
@@ -195,6 +198,7 @@ impl Default for PoissonL1Config {
             band_trim: BAND_TRIM,
             band_emitters: false,
             band_scope: BandScope::All,
+            scratch: Scratch::default(),
         }
     }
 }
@@ -435,7 +439,7 @@ impl Register for PoissonL1Config {
                     ..*self
                 };
                 let inner = Box::new(PoissonL1::new(anchored, width, height)?);
-                Box::new(OnPrior::new(context, width, height, inner)?)
+                Box::new(OnPrior::new(context, width, height, self.scratch, inner)?)
             }
         };
         Ok(banded(
@@ -448,11 +452,25 @@ impl Register for PoissonL1Config {
     }
 
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
-        let own = l1_memory(self, width, height).saturating_add(bytes_for(width, height, 12, 0));
+        let own = self.own_memory(width, height);
         match self.data {
             DataTerm::Colour => own,
-            DataTerm::Prior => own.saturating_add(prior_memory(width, height)),
+            DataTerm::Prior => own.saturating_add(prior_memory(width, height, self.scratch)),
         }
+    }
+
+    fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
+        if self.data == DataTerm::Prior {
+            let own = self.own_memory(width, height);
+            self.scratch.fit(width, height, limit, own);
+        }
+    }
+}
+
+impl PoissonL1Config {
+    /// The solve's bytes and its output, the prior apart.
+    fn own_memory(&self, width: usize, height: usize) -> u64 {
+        l1_memory(self, width, height).saturating_add(bytes_for(width, height, 12, 0))
     }
 }
 

@@ -9,7 +9,7 @@
 use super::dct::DctPoisson;
 use super::ops::{grad_adjoint, Dims};
 use super::param::{Param, Params, Range};
-use super::prior::{prior_memory, DataTerm, OnPrior, DATA_DOC, PRIOR_ALPHA_DOC};
+use super::prior::{prior_memory, DataTerm, OnPrior, Scratch, DATA_DOC, PRIOR_ALPHA_DOC};
 use super::{bytes_for, Method, Reconstructor, Register, MIB};
 use crate::context::Context;
 use crate::error::Result;
@@ -29,6 +29,9 @@ pub struct PoissonL2Config {
     pub data: DataTerm,
     /// Weight of the data term when it is the prior.
     pub prior_alpha: f32,
+    /// OIDN's scratch memory when it computes the prior: lowered by a memory limit
+    /// ([`Register::fit_memory`]), not a parameter.
+    pub(crate) scratch: Scratch,
 }
 
 impl Default for PoissonL2Config {
@@ -37,6 +40,7 @@ impl Default for PoissonL2Config {
             alpha: DEFAULT_ALPHA,
             data: DataTerm::Colour,
             prior_alpha: DEFAULT_PRIOR_ALPHA_L2,
+            scratch: Scratch::default(),
         }
     }
 }
@@ -97,7 +101,7 @@ impl Register for PoissonL2Config {
                     ..*self
                 };
                 let inner = Box::new(PoissonL2::new(anchored, width, height)?);
-                Box::new(OnPrior::new(context, width, height, inner)?)
+                Box::new(OnPrior::new(context, width, height, self.scratch, inner)?)
             }
         })
     }
@@ -110,7 +114,14 @@ impl Register for PoissonL2Config {
         let own = bytes_for(width, height, 44, MIB);
         match self.data {
             DataTerm::Colour => own,
-            DataTerm::Prior => own.saturating_add(prior_memory(width, height)),
+            DataTerm::Prior => own.saturating_add(prior_memory(width, height, self.scratch)),
+        }
+    }
+
+    fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
+        if self.data == DataTerm::Prior {
+            self.scratch
+                .fit(width, height, limit, bytes_for(width, height, 44, MIB));
         }
     }
 }

@@ -188,8 +188,9 @@ struct ReconstructArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
-    /// Refuse a plan whose memory estimate exceeds this many MiB (0: no limit), with an error
-    /// instead of running out of memory.
+    /// Keep each plan's memory estimate, beyond the frame, within this many MiB (0: no limit):
+    /// GradNet, the combiner and OIDN run in smaller tiles to fit (the same image up to rounding, slower); a
+    /// plan that cannot fit is refused with an error instead of running out of memory.
     #[arg(long, default_value_t = 0)]
     max_memory_mb: u64,
     /// Refuse frames with NaN, Inf or negative colour instead of replacing them.

@@ -20,7 +20,7 @@ use super::band::{self, banded, BandScope, BAND_TRIM, NOISE_BAND};
 use super::converged::converged_mask;
 use super::param::{choices, Param, Params, Preset, Range};
 use super::poisson_l1::{l1_memory, PoissonL1};
-use super::prior::{prior_memory, Prior, Quality};
+use super::prior::{prior_memory, Prior, Quality, Scratch};
 use super::{bytes_for, Method, PoissonL1Config, Reconstructor, Register, MIB};
 use crate::context::Context;
 use crate::error::{Error, Result};
@@ -92,6 +92,9 @@ pub struct FrgrConfig {
     pub band_emitters: bool,
     /// Where the band clamps: every pixel, or only beside an emitter's edge (`recon/band.rs`).
     pub band_scope: BandScope,
+    /// OIDN's scratch memory when it computes the prior: lowered by a memory limit
+    /// ([`Register::fit_memory`]), not a parameter.
+    pub(crate) scratch: Scratch,
 }
 
 impl Default for FrgrConfig {
@@ -109,6 +112,7 @@ impl Default for FrgrConfig {
             band_trim: BAND_TRIM,
             band_emitters: true,
             band_scope: BandScope::All,
+            scratch: Scratch::default(),
         }
     }
 }
@@ -296,10 +300,17 @@ impl Register for FrgrConfig {
         let guide = match self.guide {
             FrgrGuide::PoissonL1 => l1_memory(&PoissonL1Config::default(), width, height)
                 .saturating_add(bytes_for(width, height, 12, 0)),
-            FrgrGuide::Prior => prior_memory(width, height),
+            FrgrGuide::Prior => prior_memory(width, height, self.scratch),
             FrgrGuide::Rdfc | FrgrGuide::Colour => 0,
         };
         own.saturating_add(guide)
+    }
+
+    fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
+        if self.guide == FrgrGuide::Prior {
+            let own = bytes_for(width, height, FRGR_BYTES_PER_PIXEL, 4 * MIB);
+            self.scratch.fit(width, height, limit, own);
+        }
     }
 }
 
@@ -399,7 +410,7 @@ impl Frgr {
             FrgrGuide::Rdfc | FrgrGuide::Colour | FrgrGuide::Prior => None,
         };
         let prior = (config.guide == FrgrGuide::Prior)
-            .then(|| Prior::new(context, width, height, Quality::High))
+            .then(|| Prior::new(context, width, height, Quality::High, config.scratch))
             .transpose()?;
         Ok(Frgr {
             levels: level_sizes(width, height, config.levels),

@@ -128,6 +128,10 @@ pub struct GradNetConfig {
     pub band_emitters: bool,
     /// Where the band clamps: every pixel, or only beside an emitter's edge (`recon/band.rs`).
     pub band_scope: BandScope,
+    /// Caps on `(whole_pixels, tile_pixels)` that keep a plan within its memory limit, for
+    /// the int8 graph and for an fp32 one, each by its own bytes a pixel: set by
+    /// [`Register::fit_memory`] (`max_memory_mb`), `None` without a limit.
+    fitted: Option<[(usize, usize); 2]>,
 }
 
 impl Default for GradNetConfig {
@@ -146,6 +150,7 @@ impl Default for GradNetConfig {
             band_trim: BAND_TRIM,
             band_emitters: false,
             band_scope: BandScope::All,
+            fitted: None,
         }
     }
 }
@@ -181,17 +186,29 @@ const FP32_BYTES: (u64, u64) = (900, 192 * super::MIB);
 
 impl GradNetConfig {
     /// `(whole_pixels, tile_pixels)` for the graph that runs: as set for the int8 graph, a
-    /// [`FP32_SHARE`] of them for an fp32 one.
+    /// [`FP32_SHARE`] of them for an fp32 one; within the memory limit's caps, if any, but a
+    /// tile never under the least GradNet runs (so that a limit under it is refused).
     fn budgets(&self, int8: bool) -> (usize, usize) {
-        if int8 {
+        let least = tiles::GRADNET.min_tile().pow(2);
+        let (whole, tile) = if int8 {
             (self.whole_pixels, self.tile_pixels)
         } else {
-            let least = tiles::GRADNET.min_tile().pow(2);
             let tile = match self.tile_pixels {
                 0 => 0,
                 t => (t / FP32_SHARE).max(least.min(t)),
             };
             (self.whole_pixels / FP32_SHARE, tile)
+        };
+        match self.fitted {
+            Some(caps) => {
+                let (most_whole, most_tile) = caps[usize::from(!int8)];
+                let tile = match tile {
+                    0 => 0,
+                    t => t.min(most_tile.max(least.min(t))),
+                };
+                (whole.min(most_whole), tile)
+            }
+            None => (whole, tile),
         }
     }
 
@@ -343,24 +360,58 @@ impl Register for GradNetConfig {
     /// The int8 configuration is estimated for both graphs (the larger counts), as a frame
     /// without features runs the fp32 no-feature model.
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
-        let pixels = width.saturating_mul(height);
-        let graph = |int8: bool| {
-            let (whole, tile) = self.budgets(int8);
-            let (per_pixel, fixed) = if int8 { INT8_BYTES } else { FP32_BYTES };
-            if tile == 0 || pixels <= whole {
-                super::bytes_for(width, height, per_pixel, fixed)
-            } else {
-                // A tile holds at most `tile` pixels, whatever its shape.
-                super::bytes_for(tile.min(pixels), 1, per_pixel, fixed)
-                    .saturating_add(super::bytes_for(width, height, 64, 0))
-            }
-        };
-        let int8 = self.model.is_none() && self.precision == GradNetPrecision::Int8;
-        if int8 {
+        let graph = |int8| self.graph_memory(int8, width, height);
+        if self.estimates_int8() {
             graph(true).max(graph(false))
         } else {
             graph(false)
         }
+    }
+
+    /// Caps the budgets of each graph whose estimate is over `limit` at what `limit` holds by
+    /// the estimate's own figures (that graph's bytes a pixel, one tile and what is
+    /// frame-sized), so that each graph takes the largest tiles the limit allows.
+    fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
+        let frame = super::bytes_for(width, height, 64, 0);
+        let cap = |int8: bool| {
+            if self.graph_memory(int8, width, height) <= limit {
+                return (usize::MAX, usize::MAX);
+            }
+            let (per_pixel, fixed) = if int8 { INT8_BYTES } else { FP32_BYTES };
+            (
+                super::pixels_within(limit, 0, per_pixel, fixed),
+                super::pixels_within(limit, frame, per_pixel, fixed),
+            )
+        };
+        let mut caps = [cap(true), cap(false)];
+        if let Some(before) = self.fitted {
+            for (cap, old) in caps.iter_mut().zip(before) {
+                *cap = (cap.0.min(old.0), cap.1.min(old.1));
+            }
+        }
+        self.fitted = Some(caps);
+    }
+}
+
+impl GradNetConfig {
+    /// The estimate for the int8 graph or an fp32 one.
+    fn graph_memory(&self, int8: bool, width: usize, height: usize) -> u64 {
+        let pixels = width.saturating_mul(height);
+        let (whole, tile) = self.budgets(int8);
+        let (per_pixel, fixed) = if int8 { INT8_BYTES } else { FP32_BYTES };
+        if tile == 0 || pixels <= whole {
+            super::bytes_for(width, height, per_pixel, fixed)
+        } else {
+            // A tile holds at most `tile` pixels, whatever its shape.
+            super::bytes_for(tile.min(pixels), 1, per_pixel, fixed)
+                .saturating_add(super::bytes_for(width, height, 64, 0))
+        }
+    }
+
+    /// Whether the configuration runs the embedded int8 graph for frames with features (and
+    /// the fp32 no-feature model for frames without): its estimate covers both graphs.
+    fn estimates_int8(&self) -> bool {
+        self.model.is_none() && self.precision == GradNetPrecision::Int8
     }
 }
 

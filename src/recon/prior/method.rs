@@ -2,7 +2,7 @@
 //! image), the yardstick every prior path must beat, registered so that it is timed and
 //! plotted by `gdrecon bench` beside them.
 
-use super::{Prior, Quality};
+use super::{Prior, Quality, Scratch};
 use crate::context::Context;
 use crate::error::Result;
 use crate::frame::Frame;
@@ -18,12 +18,16 @@ use crate::report::Report;
 pub struct PriorConfig {
     /// OIDN's quality when the prior is computed.
     pub quality: Quality,
+    /// OIDN's scratch memory when it computes the prior: lowered by a memory limit
+    /// ([`Register::fit_memory`]), not a parameter.
+    pub(crate) scratch: Scratch,
 }
 
 impl Default for PriorConfig {
     fn default() -> Self {
         PriorConfig {
             quality: Quality::High,
+            scratch: Scratch::default(),
         }
     }
 }
@@ -57,14 +61,24 @@ impl Register for PriorConfig {
             width,
             height,
             self.quality,
+            self.scratch,
         )?)))
     }
 
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
         // OIDN's share and the output.
-        super::prior_memory(width, height)
-            .saturating_add(super::super::bytes_for(width, height, 12, 0))
+        super::prior_memory(width, height, self.scratch).saturating_add(output(width, height))
     }
+
+    fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
+        self.scratch
+            .fit(width, height, limit, output(width, height));
+    }
+}
+
+/// The output image's bytes.
+fn output(width: usize, height: usize) -> u64 {
+    super::super::bytes_for(width, height, 12, 0)
 }
 
 /// `prior` planned.

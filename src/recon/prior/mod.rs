@@ -87,10 +87,50 @@ pub(crate) const OIDN_MAX_MEMORY_MB: u64 = 1024;
 /// The slope is 554 B a pixel and the intercept 12 MiB; the estimate takes 640 B a pixel (60
 /// ours, 580 OIDN's up to its cap) and 64 MiB (OIDN's tile size and its weights vary with the
 /// build and the CPU).
-pub(crate) fn prior_memory(width: usize, height: usize) -> u64 {
-    let ours = super::bytes_for(width, height, 60, 64 * super::MIB);
-    let oidn = super::bytes_for(width, height, 580, 0).min(OIDN_MAX_MEMORY_MB * super::MIB);
-    ours.saturating_add(oidn)
+///
+/// A memory limit lowers the scratch OIDN may take ([`Scratch::fit`]).
+pub(crate) fn prior_memory(width: usize, height: usize, scratch: Scratch) -> u64 {
+    ours(width, height).saturating_add(
+        super::bytes_for(width, height, 580, 0).min(scratch.0.saturating_mul(super::MIB)),
+    )
+}
+
+/// Our share of [`prior_memory`]: the buffers and planar output, and OIDN's fixed part.
+fn ours(width: usize, height: usize) -> u64 {
+    super::bytes_for(width, height, 60, 64 * super::MIB)
+}
+
+/// The least scratch a memory limit lowers OIDN's to. Below it OIDN takes more than it is
+/// given: at 3840 x 2160 a `maxMemoryMB` of 512 took 0.5 GB beyond our buffers and 21 % more
+/// time than 1024, one of 256 took 0.5 GB as well and 41 % more time (docs/benchmarks.md,
+/// "Fifty-eighth session").
+pub(crate) const OIDN_LEAST_MB: u64 = 512;
+
+/// The scratch memory, in MiB, OIDN may use in one plan (its `maxMemoryMB`, beyond which it
+/// denoises in tiles, the same image): [`OIDN_MAX_MEMORY_MB`] unless a plan's memory limit
+/// lowers it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Scratch(u64);
+
+impl Default for Scratch {
+    fn default() -> Self {
+        Scratch(OIDN_MAX_MEMORY_MB)
+    }
+}
+
+impl Scratch {
+    /// OIDN's `maxMemoryMB`.
+    #[cfg_attr(not(feature = "oidn"), allow(dead_code))]
+    pub(crate) fn mb(self) -> u64 {
+        self.0
+    }
+
+    /// Lowers the scratch to what `limit` bytes leave when the rest of the plan takes `taken`
+    /// (the prior's own buffers apart), but not under [`OIDN_LEAST_MB`]; never raises it.
+    pub(crate) fn fit(&mut self, width: usize, height: usize, limit: u64, taken: u64) {
+        let left = limit.saturating_sub(taken.saturating_add(ours(width, height))) / super::MIB;
+        self.0 = self.0.min(left.max(OIDN_LEAST_MB));
+    }
 }
 
 /// A planned screened Poisson solve run on the prior instead of the base image: each frame is
@@ -106,10 +146,11 @@ impl OnPrior {
         context: &Context,
         width: usize,
         height: usize,
+        scratch: Scratch,
         inner: Box<dyn Reconstructor>,
     ) -> Result<Self> {
         Ok(OnPrior {
-            prior: Prior::new(context, width, height, Quality::High)?,
+            prior: Prior::new(context, width, height, Quality::High, scratch)?,
             inner,
         })
     }
@@ -155,6 +196,9 @@ pub(crate) fn anchored(prior: Image, frame: &Frame) -> Result<Frame> {
 pub(crate) struct Prior {
     context: Context,
     quality: Quality,
+    /// OIDN's scratch memory (read only when OIDN is built in).
+    #[cfg_attr(not(feature = "oidn"), allow(dead_code))]
+    scratch: Scratch,
     width: usize,
     height: usize,
     /// OIDN's filter and the planar image it writes, made on the first frame without a prior.
@@ -173,10 +217,12 @@ impl Prior {
         width: usize,
         height: usize,
         quality: Quality,
+        scratch: Scratch,
     ) -> Result<Self> {
         Ok(Prior {
             context: context.clone(),
             quality,
+            scratch,
             width,
             height,
             #[cfg(feature = "oidn")]
@@ -231,7 +277,7 @@ impl Prior {
                     Image::try_zeros(3, self.width, self.height)?,
                 ),
             };
-            let filter = oidn::Filter::new(device, buffers, quality);
+            let filter = oidn::Filter::new(device, buffers, quality, self.scratch.mb());
             self.computed = Some((oidn::Runner::new(filter), image));
         }
         let (runner, image) = self.computed.as_mut().expect("made above");
@@ -357,8 +403,12 @@ mod tests {
     /// 5.3 GB before the cap; measured peak now 2.4 GB with the frame, docs/benchmarks.md).
     #[test]
     fn oidn_scratch_is_capped_in_the_estimate() {
-        assert_eq!(prior_memory(1280, 720), 1280 * 720 * 640 + 64 * MIB);
-        let four_k = prior_memory(3840, 2160);
+        let scratch = Scratch::default();
+        assert_eq!(
+            prior_memory(1280, 720, scratch),
+            1280 * 720 * 640 + 64 * MIB
+        );
+        let four_k = prior_memory(3840, 2160, scratch);
         assert_eq!(
             four_k,
             3840 * 2160 * 60 + 64 * MIB + OIDN_MAX_MEMORY_MB * MIB

@@ -313,6 +313,8 @@ pub(crate) struct Filter {
     /// Null until the first run.
     handle: Handle,
     quality: c_int,
+    /// `maxMemoryMB`: the scratch memory OIDN may use before it denoises in tiles.
+    max_memory_mb: u64,
     /// Interleaved RGB: colour, albedo, normal, output.
     buffers: Buffers,
     /// Which auxiliary images the filter was last committed with.
@@ -328,19 +330,25 @@ unsafe impl Send for Filter {}
 
 impl Filter {
     /// A filter on `device` for the images `buffers` were made for (OIDN is not called).
-    pub(crate) fn new(device: std::sync::Arc<Device>, buffers: Buffers, quality: c_int) -> Self {
+    pub(crate) fn new(
+        device: std::sync::Arc<Device>,
+        buffers: Buffers,
+        quality: c_int,
+        max_memory_mb: u64,
+    ) -> Self {
         Filter {
             device,
             handle: std::ptr::null_mut(),
             quality,
+            max_memory_mb,
             buffers,
             committed: None,
             stop: Arc::new(AtomicBool::new(false)),
         }
     }
 
-    /// Makes OIDN's filter object: RT, HDR, the quality, its scratch memory bounded
-    /// ([`super::OIDN_MAX_MEMORY_MB`]), the stop flag as progress monitor.
+    /// Makes OIDN's filter object: RT, HDR, the quality, its scratch memory bounded (the
+    /// plan's [`super::Scratch`]), the stop flag as progress monitor.
     fn create(&mut self) -> Result<()> {
         let api = &self.device.lib.api;
         // SAFETY: the device is live; "RT" is a NUL-terminated filter type.
@@ -356,7 +364,7 @@ impl Filter {
         unsafe {
             (api.set_filter_bool)(handle, c("hdr").as_ptr(), true);
             (api.set_filter_int)(handle, c("quality").as_ptr(), self.quality);
-            let max_memory = super::OIDN_MAX_MEMORY_MB as c_int;
+            let max_memory = c_int::try_from(self.max_memory_mb).unwrap_or(c_int::MAX);
             (api.set_filter_int)(handle, c("maxMemoryMB").as_ptr(), max_memory);
             (api.set_filter_progress)(handle, Some(keep_going), user);
         }
