@@ -356,7 +356,20 @@ fn a_memory_limit_tiles_oidn_to_the_same_image() {
     let options = ContextOptions::with_threads(Some(2)).with_max_memory_mb(least.div_ceil(1 << 20));
     let context = Context::new(options).unwrap();
     let mut plan = Plan::new(&context, &config, w, h).unwrap();
-    let (tiled, _) = plan.execute(&frame, &Progress::none()).unwrap();
-    let (whole, _) = run(&frame, &config);
+    let (tiled, report) = plan.execute(&frame, &Progress::none()).unwrap();
+    let (whole, free) = run(&frame, &config);
     assert_eq!(tiled.as_slice(), whole.as_slice());
+    let scratch = |report: &Report| {
+        report
+            .notes
+            .iter()
+            .find_map(|n| n.split(", ").find(|p| p.starts_with("scratch")))
+            .unwrap()
+            .to_owned()
+    };
+    assert_eq!(
+        scratch(&report),
+        "scratch 512 MiB (lowered to fit max_memory_mb)"
+    );
+    assert_eq!(scratch(&free), "scratch 1024 MiB");
 }

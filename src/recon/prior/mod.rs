@@ -308,7 +308,8 @@ impl Prior {
             ));
         }
         report.note(format!(
-            "prior: Open Image Denoise {}.{}.{} ({path}), RT filter, hdr, quality {}, {}",
+            "prior: Open Image Denoise {}.{}.{} ({path}), RT filter, hdr, quality {}, {}, \
+             scratch {} MiB{}",
             version / 10000,
             version / 100 % 100,
             version % 100,
@@ -318,6 +319,12 @@ impl Prior {
                 (true, false) => "albedo",
                 (false, true) => "normal",
                 (false, false) => "no auxiliary images",
+            },
+            self.scratch.mb(),
+            if self.scratch == Scratch::default() {
+                ""
+            } else {
+                " (lowered to fit max_memory_mb)"
             }
         ));
         Ok(image)

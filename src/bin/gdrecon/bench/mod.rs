@@ -70,6 +70,11 @@ pub struct BenchArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Keep each plan within this many MiB beyond its frame, as `reconstruct --max-memory-mb`
+    /// does (smaller tiles for GradNet, the combiner and OIDN; 0: no limit): to time what a
+    /// memory budget costs.
+    #[arg(long, default_value_t = 0)]
+    max_memory_mb: u64,
     /// Write the table as CSV here too (one line per frame and variant).
     #[arg(long)]
     csv: Option<PathBuf>,
@@ -121,13 +126,25 @@ pub fn run(args: BenchArgs) -> gdrecon::Result<()> {
         None => vec![1.0],
     };
     let frames = load_frames(&args)?;
-    let context = Context::new(args.runtime.context(args.threads))?;
+    let context = Context::new(
+        args.runtime
+            .context(args.threads)
+            .with_max_memory_mb(args.max_memory_mb),
+    )?;
     let schedule = Schedule {
         warmup: args.warmup,
         runs: args.runs,
     };
     let load_before = summary::load_average();
-    say!("{}, {} worker threads", cpu::describe(), context.threads());
+    say!(
+        "{}, {} worker threads{}",
+        cpu::describe(),
+        context.threads(),
+        match context.max_memory_mb() {
+            0 => String::new(),
+            mb => format!(", max_memory_mb {mb}"),
+        }
+    );
     print_header();
     let mut rows = time_all(
         &context,
