@@ -184,6 +184,14 @@ const FP32_SHARE: usize = 2;
 const INT8_BYTES: (u64, u64) = (350, 96 * super::MIB);
 const FP32_BYTES: (u64, u64) = (900, 192 * super::MIB);
 
+/// Bytes a pixel of a tiled frame takes besides its tile's run: the output, the bias
+/// correction's planes, the masks. Peak RSS of `gdrecon reconstruct -m gradnet -p
+/// whole_pixels=0 -p tile_pixels=200000` less `gdrecon info`'s on the demo bundle (tiles of
+/// about 0.2 Mpx at every size), fifty-eighth session: +115 MiB at 1280 x 720, +154 MiB at
+/// 1920 x 1080, +335 MiB at 3840 x 2160, so 31-35 B a pixel; the estimate takes 48 (it took
+/// 64 before it was measured).
+const FRAME_BYTES: u64 = 48;
+
 impl GradNetConfig {
     /// `(whole_pixels, tile_pixels)` for the graph that runs: as set for the int8 graph, a
     /// [`FP32_SHARE`] of them for an fp32 one; within the memory limit's caps, if any, but a
@@ -354,11 +362,10 @@ impl Register for GradNetConfig {
     ///
     /// Slopes 294 B (int8) and 888 B (fp32) a pixel, intercepts about 55 and 100 MiB; the
     /// estimate takes [`INT8_BYTES`] and [`FP32_BYTES`]. A tiled frame takes that for one
-    /// tile, plus 64 B a pixel of the frame for what is frame-sized (the output, the bias
-    /// correction's planes, the masks): at 3840 x 2160 the int8 graph's estimate is 0.92 GB
-    /// and the fp32 graph's 1.10 GB, where the CLI's peak less `info`'s was 0.50 and 0.70 GB.
-    /// The int8 configuration is estimated for both graphs (the larger counts), as a frame
-    /// without features runs the fp32 no-feature model.
+    /// tile, plus [`FRAME_BYTES`] a pixel of the frame for what is frame-sized: at 3840 x 2160
+    /// the int8 graph's estimate is 0.77 GB and the fp32 graph's 0.97 GB, where the CLI's peak
+    /// less `info`'s was 0.50 and 0.70 GB. The int8 configuration is estimated for both graphs
+    /// (the larger counts), as a frame without features runs the fp32 no-feature model.
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
         let graph = |int8| self.graph_memory(int8, width, height);
         if self.estimates_int8() {
@@ -372,7 +379,7 @@ impl Register for GradNetConfig {
     /// the estimate's own figures (that graph's bytes a pixel, one tile and what is
     /// frame-sized), so that each graph takes the largest tiles the limit allows.
     fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
-        let frame = super::bytes_for(width, height, 64, 0);
+        let frame = super::bytes_for(width, height, FRAME_BYTES, 0);
         let cap = |int8: bool| {
             if self.graph_memory(int8, width, height) <= limit {
                 return (usize::MAX, usize::MAX);
@@ -404,7 +411,7 @@ impl GradNetConfig {
         } else {
             // A tile holds at most `tile` pixels, whatever its shape.
             super::bytes_for(tile.min(pixels), 1, per_pixel, fixed)
-                .saturating_add(super::bytes_for(width, height, 64, 0))
+                .saturating_add(super::bytes_for(width, height, FRAME_BYTES, 0))
         }
     }
 
