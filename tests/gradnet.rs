@@ -198,6 +198,19 @@ fn tiles_match_the_untiled_run() {
 /// The int8 default lays tiles out for the int8 graph's budgets; a frame without features runs
 /// the fp32 no-feature model, which takes 3x the memory a pixel, in tiles of half the budgets,
 /// and the same plan goes back to the int8 tiles for a frame with features.
+/// The tiles a GradNet run reports: "N tile(s) of W x H".
+fn tiles(report: &gdrecon::Report) -> String {
+    report
+        .notes
+        .iter()
+        .find_map(|n| {
+            n.split(", ")
+                .find(|p| p.contains("tile(s)"))
+                .map(str::to_owned)
+        })
+        .unwrap()
+}
+
 #[test]
 fn an_fp32_graph_runs_in_tiles_of_half_the_budgets() {
     let frame = sample(); // 320 x 184 padded: 58880 pixels
@@ -207,17 +220,6 @@ fn an_fp32_graph_runs_in_tiles_of_half_the_budgets() {
     config.tile_pixels = 2 * 232 * 184; // fp32: 4 tiles of 224 x 184
     let ctx = context();
     let mut plan = Plan::new(&ctx, &MethodConfig::GradNet(config), 320, 180).unwrap();
-    let tiles = |report: &gdrecon::Report| {
-        report
-            .notes
-            .iter()
-            .find_map(|n| {
-                n.split(", ")
-                    .find(|p| p.contains("tile(s)"))
-                    .map(str::to_owned)
-            })
-            .unwrap()
-    };
     let (fp32, report) = plan.execute(&featureless, &Progress::none()).unwrap();
     assert_eq!(tiles(&report), "4 tile(s) of 224 x 184");
     let (int8, report) = plan.execute(&frame, &Progress::none()).unwrap();
@@ -249,17 +251,6 @@ fn a_memory_limit_tiles_each_graph_by_its_own_bytes() {
     };
     let limit = mib(config.memory_estimate(w, h)) - 2;
     let mut plan = limited(limit).unwrap();
-    let tiles = |report: &gdrecon::Report| {
-        report
-            .notes
-            .iter()
-            .find_map(|n| {
-                n.split(", ")
-                    .find(|p| p.contains("tile(s)"))
-                    .map(str::to_owned)
-            })
-            .unwrap()
-    };
     let (fp32, report) = plan.execute(&featureless, &Progress::none()).unwrap();
     assert!(!tiles(&report).starts_with("1 tile(s)"), "{report:?}");
     let (int8, report) = plan.execute(&frame, &Progress::none()).unwrap();
