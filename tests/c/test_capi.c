@@ -206,6 +206,38 @@ static void test_prior(gdr_context* ctx) {
     free(out);
 }
 
+/* "max_memory_mb" sizes tiles before it refuses: a 1280 x 768 prior is estimated at 676 MiB
+ * (OIDN's scratch 544 of it) and at 644 MiB with OIDN's scratch at its floor of 512, so at
+ * 665 its commit fits (it was refused before the fifty-eighth session) and at 600 it is
+ * refused in one line naming the limit. Commit only: nothing is denoised. */
+static void test_memory_budget(void) {
+    const size_t w = 1280, h = 768;
+    float* planes[4];
+    const char* names[4] = {"color", "dx", "dy", "output"};
+    const int limits[2] = {665, 600};
+    int i, k;
+    for (i = 0; i < 4; i++) planes[i] = (float*)calloc(w * h * 3, sizeof(float));
+    for (k = 0; k < 2; k++) {
+        gdr_context* ctx = NULL;
+        gdr_filter* f = NULL;
+        OK(gdr_context_new(&ctx));
+        OK(gdr_context_set_int(ctx, "threads", 1));
+        OK(gdr_context_set_int(ctx, "max_memory_mb", limits[k]));
+        OK(gdr_context_commit(ctx));
+        OK(gdr_filter_new(ctx, "prior", &f));
+        for (i = 0; i < 4; i++) OK(gdr_filter_set_image(f, names[i], planes[i], w, h, 3, 0, 0));
+        if (k == 0) {
+            OK(gdr_filter_commit(f));
+        } else {
+            const char* msg = EXPECT(gdr_filter_commit(f), GDR_ERROR_OUT_OF_MEMORY);
+            CONTAINS(msg, "needs about 644 MiB, more than max_memory_mb = 600");
+        }
+        OK(gdr_filter_release(&f));
+        OK(gdr_context_release(&ctx));
+    }
+    for (i = 0; i < 4; i++) free(planes[i]);
+}
+
 /* RGBA with padded rows, planar, in place, and all passes in one buffer: same bits. */
 static void test_layouts(gdr_context* ctx, const char* dir) {
     size_t row = W * 4 + 8; /* floats per padded RGBA row */
@@ -672,6 +704,7 @@ int main(int argc, char** argv) {
     test_errors(ctx);
     test_param_listing(ctx);
     test_prior(ctx);
+    test_memory_budget();
     test_cancellation(ctx);
     OK(gdr_context_release(&ctx));
     if (argc > 2) test_frame_and_log(argv[2]);
