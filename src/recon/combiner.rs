@@ -304,16 +304,9 @@ impl Register for CombinerConfig {
     /// The prior's share, the L1 solve (one plan for both candidates) and both outputs, and
     /// the network's run over one tile (or the whole frame).
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
-        let pixels = width.saturating_mul(height);
-        // A tile holds at most `tile_pixels` pixels, whatever its shape.
-        let (tw, th) = if self.tile_pixels == 0 || pixels <= self.whole_pixels {
-            (width, height)
-        } else {
-            (self.tile_pixels.min(pixels), 1)
-        };
         prior_memory(width, height, self.scratch)
             .saturating_add(self.solve_memory(width, height))
-            .saturating_add(bytes_for(tw, th, NET_BYTES, NET_FIXED))
+            .saturating_add(self.network_memory(width, height))
     }
 
     /// Lowers OIDN's scratch to what `limit` leaves beside the rest at the network's own
@@ -322,10 +315,7 @@ impl Register for CombinerConfig {
     /// runs, so that a limit under it is refused.
     fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
         let solve = self.solve_memory(width, height);
-        let network = self
-            .memory_estimate(width, height)
-            .saturating_sub(prior_memory(width, height, self.scratch))
-            .saturating_sub(solve);
+        let network = self.network_memory(width, height);
         self.scratch
             .fit(width, height, limit, solve.saturating_add(network));
         if self.memory_estimate(width, height) <= limit {
@@ -351,6 +341,18 @@ impl CombinerConfig {
         l1_memory(&strong, width, height)
             .max(l1_memory(&weak, width, height))
             .saturating_add(bytes_for(width, height, 5 * 12 + 1, 0))
+    }
+
+    /// The network's run over one tile, or the whole frame.
+    fn network_memory(&self, width: usize, height: usize) -> u64 {
+        let pixels = width.saturating_mul(height);
+        // A tile holds at most `tile_pixels` pixels, whatever its shape.
+        let (tw, th) = if self.tile_pixels == 0 || pixels <= self.whole_pixels {
+            (width, height)
+        } else {
+            (self.tile_pixels.min(pixels), 1)
+        };
+        bytes_for(tw, th, NET_BYTES, NET_FIXED)
     }
 }
 

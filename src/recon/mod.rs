@@ -478,9 +478,11 @@ impl Plan {
         }
         // Tiles sized to the limit first: only a plan whose smallest tiles are over it is
         // refused.
-        let fitted = memory_limit(context).map(|limit| config.fitted_to(width, height, limit));
+        let left = address_space_left();
+        let fitted =
+            memory_limit(context, left).map(|limit| config.fitted_to(width, height, limit));
         let config = fitted.as_ref().unwrap_or(config);
-        check_memory(context, config, width, height)?;
+        check_memory(context, left, config, width, height)?;
         let inner = context.install(|| config.instantiate(context, width, height))?;
         Ok(Plan {
             context: context.clone(),
@@ -563,23 +565,25 @@ impl fmt::Debug for Plan {
     }
 }
 
-/// The bytes a plan may take: the context's `max_memory_mb` and, on Linux, the address
-/// space left under `RLIMIT_AS`, whichever is less; `None` when neither limits it.
-fn memory_limit(context: &Context) -> Option<u64> {
+/// The bytes a plan may take: the context's `max_memory_mb` and the address space `left`
+/// under `RLIMIT_AS` ([`address_space_left`]), whichever is less; `None` when neither limits
+/// it.
+fn memory_limit(context: &Context, left: Option<u64>) -> Option<u64> {
     let set = match context.max_memory_mb() {
         0 => None,
         mb => Some(mb.saturating_mul(MIB)),
     };
-    match (set, address_space_left()) {
+    match (set, left) {
         (Some(a), Some(b)) => Some(a.min(b)),
         (a, b) => a.or(b),
     }
 }
 
 /// Refuses a plan whose [`MethodConfig::memory_estimate`] exceeds the context's
-/// `max_memory_mb` or, on Linux, the address space left under `RLIMIT_AS`.
+/// `max_memory_mb` or the address space `left` under `RLIMIT_AS` (read once per plan).
 fn check_memory(
     context: &Context,
+    left: Option<u64>,
     config: &MethodConfig,
     width: usize,
     height: usize,
@@ -594,7 +598,7 @@ fn check_memory(
             mib(estimate)
         )));
     }
-    if let Some(left) = address_space_left() {
+    if let Some(left) = left {
         if estimate > left {
             return Err(Error::OutOfMemory(format!(
                 "method {} for {width} x {height} needs about {} MiB, more than the {} MiB of \
