@@ -24,10 +24,10 @@ pub struct ContextOptions {
     /// The most memory, in MiB, a plan of this context may estimate it needs beyond the frame
     /// (buffers, scratch, the output, OIDN's or ONNX Runtime's share). As OIDN's
     /// `maxMemoryMB`, it sizes tiles: `Plan::new` lowers what GradNet and the combiner run at
-    /// once, and OIDN's scratch (down to 512 MiB), to fit (the same image up to rounding, in more
-    /// time), and
-    /// refuses with [`Error::OutOfMemory`] only a plan whose smallest tiles are still over
-    /// it. 0 means no limit (the default); the address space the process has left under its
+    /// once (down to tiles of four margins a side, as OIDN's stop at three overlaps), and
+    /// OIDN's scratch (down to 512 MiB), to fit (the same image up to rounding, in more
+    /// time), and refuses with [`Error::OutOfMemory`] only a plan whose smallest tiles are
+    /// still over it. 0 means no limit (the default); the address space the process has left under its
     /// limit (`ulimit -v`) bounds plans the same way either way.
     pub max_memory_mb: u64,
 }

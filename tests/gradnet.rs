@@ -237,10 +237,12 @@ fn an_fp32_graph_runs_in_tiles_of_half_the_budgets() {
 /// `max_memory_mb` tiles each graph by its own bytes a pixel: just under the estimate of the
 /// default (the fp32 no-feature model's, run whole), a featureless frame runs the fp32 model
 /// in tiles and a frame with features still runs the int8 graph whole; the images are those
-/// of a plan without a limit. Under the least tiles' estimate the plan is refused.
+/// of a plan without a limit. Under the least tiles' estimate the plan is refused. (A frame
+/// larger than the least tile a limit lowers the budget to, 384 x 384: the sample is smaller,
+/// and would be refused.)
 #[test]
 fn a_memory_limit_tiles_each_graph_by_its_own_bytes() {
-    let frame = sample();
+    let frame = gdrecon::synth::synthetic_frame(512, 320, 16.0, 5);
     let featureless = without_features(frame.clone());
     let config = MethodConfig::GradNet(GradNetConfig::default());
     let (w, h) = (frame.width(), frame.height());
@@ -254,7 +256,7 @@ fn a_memory_limit_tiles_each_graph_by_its_own_bytes() {
     let (fp32, report) = plan.execute(&featureless, &Progress::none()).unwrap();
     assert!(!tiles(&report).starts_with("1 tile(s)"), "{report:?}");
     let (int8, report) = plan.execute(&frame, &Progress::none()).unwrap();
-    assert_eq!(tiles(&report), "1 tile(s) of 320 x 184");
+    assert_eq!(tiles(&report), "1 tile(s) of 512 x 320");
     let free = GradNetConfig::default();
     assert_close(
         &fp32,
@@ -268,6 +270,16 @@ fn a_memory_limit_tiles_each_graph_by_its_own_bytes() {
     assert!(
         matches!(err, gdrecon::Error::OutOfMemory(_)) && err.to_string().contains("gradnet"),
         "{err}"
+    );
+    // The sample (320 x 184 padded) is within one least tile: no limit under its estimate
+    // tiles it, so none is planned.
+    let (sw, sh) = (sample().width(), sample().height());
+    let whole = config.memory_estimate(sw, sh);
+    assert!(
+        config
+            .fitted_to(sw, sh, whole - (2 << 20))
+            .memory_estimate(sw, sh)
+            >= whole
     );
 }
 

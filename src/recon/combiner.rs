@@ -311,8 +311,9 @@ impl Register for CombinerConfig {
 
     /// Lowers OIDN's scratch to what `limit` leaves beside the rest at the network's own
     /// budgets (OIDN in tiles costs less time than the network in small ones), then the
-    /// network's budgets to what is left; a tile is never lowered below the least the network
-    /// runs, so that a limit under it is refused.
+    /// network's budgets to what is left; a tile (or the whole frame) is never lowered below
+    /// [`Overlap::least_fitted`], so that a limit under it is refused, not run in tiles that
+    /// are mostly margin.
     fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
         let solve = self.solve_memory(width, height);
         let network = self.network_memory(width, height);
@@ -323,15 +324,14 @@ impl Register for CombinerConfig {
         }
         let taken = prior_memory(width, height, self.scratch).saturating_add(solve);
         let most = super::pixels_within(limit, taken, NET_BYTES, NET_FIXED);
+        // A frame within the least fitted tile runs whole: tiled, it would run as much.
+        let most = most.max(OVERLAP.least_fitted());
         self.whole_pixels = self.whole_pixels.min(most);
         if self.tile_pixels > 0 {
-            self.tile_pixels = self.tile_pixels.min(most.max(LEAST_TILE));
+            self.tile_pixels = self.tile_pixels.min(most);
         }
     }
 }
-
-/// The fewest pixels a network tile holds (both sides [`OVERLAP`]'s least).
-const LEAST_TILE: usize = OVERLAP.min_tile() * OVERLAP.min_tile();
 
 impl CombinerConfig {
     /// What the combiner holds besides the prior and the network's run: the L1 solve (one

@@ -195,9 +195,11 @@ const FRAME_BYTES: u64 = 48;
 impl GradNetConfig {
     /// `(whole_pixels, tile_pixels)` for the graph that runs: as set for the int8 graph, a
     /// [`FP32_SHARE`] of them for an fp32 one; within the memory limit's caps, if any, but a
-    /// tile never under the least GradNet runs (so that a limit under it is refused).
+    /// tile (or the whole frame) lowered by them never under [`tiles::Overlap::least_fitted`]
+    /// (so that a limit under it is refused, not run in tiles that are mostly margin).
     fn budgets(&self, int8: bool) -> (usize, usize) {
         let least = tiles::GRADNET.min_tile().pow(2);
+        let least_fitted = tiles::GRADNET.least_fitted();
         let (whole, tile) = if int8 {
             (self.whole_pixels, self.tile_pixels)
         } else {
@@ -212,9 +214,10 @@ impl GradNetConfig {
                 let (most_whole, most_tile) = caps[usize::from(!int8)];
                 let tile = match tile {
                     0 => 0,
-                    t => t.min(most_tile.max(least.min(t))),
+                    t => t.min(most_tile.max(least_fitted)),
                 };
-                (whole.min(most_whole), tile)
+                // A frame within the least fitted tile runs whole: tiled, it would run as much.
+                (whole.min(most_whole.max(least_fitted)), tile)
             }
             None => (whole, tile),
         }
@@ -895,5 +898,33 @@ mod enabled {
             progress.update(1.0)?;
             Ok(())
         }
+    }
+}
+
+#[cfg(test)]
+mod fit_tests {
+    use super::*;
+    use crate::recon::Register;
+
+    /// A memory limit lowers each graph's tile budget, but never below the least fitted tile;
+    /// a budget set by hand below it stays as set.
+    #[test]
+    fn a_limit_lowers_tiles_to_the_least_fitted_and_no_lower() {
+        let least = tiles::GRADNET.least_fitted();
+        let (w, h) = (3840, 2160);
+        let mut fitted = GradNetConfig::default();
+        fitted.fit_memory(w, h, 0);
+        for int8 in [true, false] {
+            let free = GradNetConfig::default().budgets(int8);
+            let (whole, tile) = fitted.budgets(int8);
+            assert_eq!(tile, least, "int8 {int8}");
+            assert!(whole == least && tile < free.1, "int8 {int8}");
+        }
+        let mut small = GradNetConfig {
+            tile_pixels: tiles::GRADNET.min_tile().pow(2),
+            ..GradNetConfig::default()
+        };
+        small.fit_memory(w, h, 0);
+        assert_eq!(small.budgets(true).1, small.tile_pixels);
     }
 }

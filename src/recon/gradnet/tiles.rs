@@ -32,6 +32,19 @@ impl Overlap {
     pub(crate) const fn min_tile(self) -> usize {
         2 * self.margin + 2 * self.multiple
     }
+
+    /// The fewest pixels a memory limit lowers a tile to (`max_memory_mb`; a budget set by
+    /// hand may go down to [`Overlap::min_tile`]): a square of four margins a side (rounded
+    /// up to the multiple), whose core is half its side, so that a tile runs at most 4x the
+    /// pixels it writes. Smaller tiles save little memory for much time, as what a tile
+    /// holds beyond its pixels is fixed: at the least tile, GradNet's fp32 graph at 1280 x
+    /// 720 ran 96x its untiled time and the combiner's network 50x (AMD EPYC Zen 4,
+    /// `docs/benchmarks.md`, fifty-ninth session), for 3 to 80 MiB less. OIDN's
+    /// `maxMemoryMB` stops at three overlaps a side, for the same reason.
+    pub(crate) const fn least_fitted(self) -> usize {
+        let side = (4 * self.margin).div_ceil(self.multiple) * self.multiple;
+        side * side
+    }
 }
 
 /// GradNet's tiles: its receptive field (84 measured) rounded up to 8.
@@ -196,6 +209,29 @@ fn fit(n: usize, spans: usize, overlap: Overlap) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The least tile a memory limit lowers a budget to: four margins a side, so a tile at
+    /// that size writes a core of at least a quarter of the pixels it runs.
+    #[test]
+    fn the_least_fitted_tile_is_four_margins_a_side() {
+        assert_eq!(GRADNET.least_fitted(), 384 * 384);
+        let combiner = Overlap {
+            margin: 24,
+            multiple: 4,
+        };
+        assert_eq!(combiner.least_fitted(), 96 * 96);
+        let odd = Overlap {
+            margin: 10,
+            multiple: 8,
+        };
+        assert_eq!(odd.least_fitted(), 40 * 40);
+        for overlap in [GRADNET, combiner, odd] {
+            let side = overlap.least_fitted().isqrt();
+            let core = side - 2 * overlap.margin;
+            assert!(4 * core * core >= side * side, "{overlap:?}");
+            assert!(overlap.least_fitted() > overlap.min_tile().pow(2));
+        }
+    }
 
     #[test]
     fn cores_partition_the_axis_with_full_margins() {
