@@ -137,3 +137,108 @@ fn without_fallback_a_missing_path_is_an_error() {
     };
     assert_eq!(report.method, expected, "{:?}", report.notes);
 }
+
+/// Under a memory limit `auto` leaves out each path still over it once fitted, as it leaves
+/// out a path whose library is missing, and says what that path needs; `l1`, the last resort,
+/// is refused only under its own estimate. With `fallback` false a path over the limit
+/// refuses the plan.
+#[test]
+fn a_memory_limit_leaves_out_the_paths_over_it() {
+    if !cfg!(feature = "gradnet") {
+        return;
+    }
+    const MIB: u64 = 1 << 20;
+    let frame = sample();
+    let (w, h) = (frame.width(), frame.height());
+    let config = no_prior();
+    let least = |c: MethodConfig| c.fitted_to(w, h, 0).memory_estimate(w, h).div_ceil(MIB);
+    let gradnet = least(MethodConfig::GradNet(config.gradnet.clone()));
+    let frgr = least(MethodConfig::Frgr(config.frgr));
+    let l1 = least(MethodConfig::PoissonL1(config.l1));
+    assert!(l1 < frgr && frgr < gradnet, "{l1} {frgr} {gradnet}");
+    let plan = |config: AutoConfig, mb: u64| {
+        let options = ContextOptions::with_threads(Some(2)).with_max_memory_mb(mb);
+        Plan::new(
+            &Context::new(options).unwrap(),
+            &MethodConfig::Auto(config),
+            w,
+            h,
+        )
+    };
+    let run = |mb: u64| {
+        let (out, report) = plan(no_prior(), mb)
+            .unwrap()
+            .execute(&frame, &Progress::none())
+            .unwrap();
+        assert!(out.all_finite());
+        report
+    };
+    assert_eq!(run(gradnet).method, "auto -> gradnet");
+    let report = run(gradnet - 1);
+    assert_eq!(report.method, "auto -> frgr");
+    let why = format!(
+        "GradNet cannot run (needs about {gradnet} MiB, more than the limit of {} MiB)",
+        gradnet - 1
+    );
+    assert!(note(&report).contains(&why), "{}", note(&report));
+    let report = run(frgr - 1);
+    assert_eq!(report.method, "auto -> l1");
+    assert!(
+        note(&report).contains(&format!("frgr, but it needs about {frgr} MiB")),
+        "{}",
+        note(&report)
+    );
+    let err = plan(no_prior(), l1 - 1).unwrap_err();
+    assert!(
+        matches!(err, gdrecon::Error::OutOfMemory(_))
+            && err
+                .to_string()
+                .contains(&format!("auto for {w} x {h} needs about {l1} MiB")),
+        "{err}"
+    );
+    let mut strict = no_prior();
+    strict.fallback = false;
+    plan(strict.clone(), gradnet).unwrap();
+    let err = plan(strict, gradnet - 1).unwrap_err();
+    assert!(matches!(err, gdrecon::Error::OutOfMemory(_)), "{err}");
+}
+
+/// At 3840 x 2160 GradNet's least (about 0.7 GB) is under L1's (about 1.2 GB): under a limit
+/// between them `auto` plans with GradNet alone in, and a frame GradNet cannot run (here its
+/// model file is missing) is refused with `OutOfMemory` naming what L1 needs.
+#[test]
+fn where_only_gradnet_fits_a_frame_it_cannot_run_is_refused() {
+    const MIB: u64 = 1 << 20;
+    let (w, h) = (3840, 2160);
+    let config = no_prior();
+    let least = |c: MethodConfig| c.fitted_to(w, h, 0).memory_estimate(w, h).div_ceil(MIB);
+    let gradnet = least(MethodConfig::GradNet(config.gradnet.clone()));
+    let l1 = least(MethodConfig::PoissonL1(config.l1));
+    assert!(gradnet + 100 < l1, "{gradnet} {l1}");
+    let limit = (gradnet + l1) / 2;
+    let auto = MethodConfig::Auto(config).fitted_to(w, h, limit * MIB);
+    assert!(auto.memory_estimate(w, h) <= limit * MIB);
+    if !cfg!(feature = "gradnet") {
+        return;
+    }
+    let options = ContextOptions::with_threads(Some(2)).with_max_memory_mb(limit);
+    let context = Context::new(options).unwrap();
+    let mut missing = without_gradnet();
+    missing.gradnet.model = Some("/nonexistent/gradnet.onnx".into());
+    let mut plan = Plan::new(&context, &MethodConfig::Auto(missing), w, h).unwrap();
+    let zeros = || gdrecon::Image::zeros(3, w, h);
+    let frame = gdrecon::FrameBuilder::new()
+        .image(gdrecon::Layer::Color, zeros())
+        .image(gdrecon::Layer::Dx, zeros())
+        .image(gdrecon::Layer::Dy, zeros())
+        .build(Policy::Replace)
+        .unwrap();
+    let err = plan.execute(&frame, &Progress::none()).unwrap_err();
+    assert!(
+        matches!(err, gdrecon::Error::OutOfMemory(_))
+            && err
+                .to_string()
+                .contains(&format!("but l1 needs about {l1} MiB")),
+        "{err}"
+    );
+}

@@ -26,6 +26,15 @@
 //! 3. **neither → `l1`**, the most robust of the remaining methods. Why GradNet could not run
 //!    is part of the note.
 //!
+//! Under a memory limit (`max_memory_mb`, or the address space left under `ulimit -v`) each
+//! path is fitted to it (smaller tiles), and a path still over it is left out as a path whose
+//! library is missing is: the frame takes the next rule, and the note says what that path
+//! needs (`no combiner (needs about 2783 MiB, more than the limit of 2000 MiB)`). A plan is
+//! refused only when no path fits (naming the smallest need), and a frame whose rules lead
+//! only to paths left out gets `Error::OutOfMemory` saying so (GradNet not loading where only
+//! it fits). With `fallback` false nothing is left out, and a plan any of whose paths is over
+//! the limit is refused.
+//!
 //! The chosen method is planned on the first frame that needs it and kept: a sequence of
 //! frames of one kind plans once. The report names the method that ran (`auto -> combiner`)
 //! and why. A render farm that must give every node the same image sets `fallback` to false:
@@ -35,7 +44,7 @@
 use super::param::{Param, ParamInfo, Params, Settings, Value};
 use super::{
     fit_within, CombinerConfig, FrgrConfig, GradNetConfig, Method, MethodConfig, PoissonL1Config,
-    Reconstructor, Register,
+    Reconstructor, Register, MIB,
 };
 use crate::context::Context;
 use crate::error::{Error, Result};
@@ -67,6 +76,21 @@ pub struct AutoConfig {
     /// Fall back to the next rule when the preferred path cannot run here (the default);
     /// false: fail instead, so that one frame gives one image on every machine.
     pub fallback: bool,
+    /// The paths a memory limit leaves out (set by [`Register::fit_memory`] when `fallback`
+    /// is set): each one's estimate at its smallest tiles is over the limit.
+    over: Over,
+}
+
+/// Why each path a memory limit leaves out cannot run (`None`: it fits): "needs about N MiB,
+/// more than the limit of L MiB".
+#[derive(Clone, Debug, Default, PartialEq)]
+struct Over {
+    /// L1 on the prior, and with it the combiner.
+    prior: Option<String>,
+    combiner: Option<String>,
+    gradnet: Option<String>,
+    frgr: Option<String>,
+    l1: Option<String>,
 }
 
 /// `auto`'s own switch, declared in a table like every parameter.
@@ -108,8 +132,8 @@ impl Params for Rules {
         Param::bool(
             "fallback",
             "When the preferred path cannot run here (Open Image Denoise or ONNX Runtime \
-             missing), take the next rule's method; false: fail instead, so one frame gives \
-             one image on every machine",
+             missing, or over the memory limit even in its smallest tiles), take the next \
+             rule's method; false: fail instead, so one frame gives one image on every machine",
             |c| c.fallback,
             |c, v| c.fallback = v,
         ),
@@ -127,6 +151,7 @@ impl Default for AutoConfig {
             use_prior: Rules::default().use_prior,
             use_combiner: Rules::default().use_combiner,
             fallback: Rules::default().fallback,
+            over: Over::default(),
         }
     }
 }
@@ -266,29 +291,69 @@ impl Register for AutoConfig {
         Some(&mut self.gradnet.runtime)
     }
 
-    /// The largest of the paths it may plan (a frame's choice is made at execute). Plans made
-    /// for earlier frames are kept, so a sequence whose frames take different paths can hold
-    /// more than this: the estimate covers one path, as one frame takes.
+    /// The largest of the paths it may plan (a frame's choice is made at execute), leaving
+    /// out those switched off (`use_prior`, `use_combiner`) and those a memory limit left out
+    /// (when it left out all, the smallest: what a plan needs at least). Plans made for
+    /// earlier frames are kept, so a sequence whose frames take different paths can hold more
+    /// than this: the estimate covers one path, as one frame takes.
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
-        [
-            MethodConfig::Frgr(self.frgr).memory_estimate(width, height),
-            MethodConfig::GradNet(self.gradnet.clone()).memory_estimate(width, height),
-            MethodConfig::PoissonL1(self.l1).memory_estimate(width, height),
-            MethodConfig::PoissonL1(self.prior).memory_estimate(width, height),
-            MethodConfig::Combiner(self.combiner()).memory_estimate(width, height),
+        let over = &self.over;
+        let (prior, combiner) = (self.use_prior, self.use_prior && self.use_combiner);
+        let paths: Vec<(u64, bool)> = [
+            (MethodConfig::Frgr(self.frgr), &over.frgr, true),
+            (
+                MethodConfig::GradNet(self.gradnet.clone()),
+                &over.gradnet,
+                true,
+            ),
+            (MethodConfig::PoissonL1(self.l1), &over.l1, true),
+            (MethodConfig::PoissonL1(self.prior), &over.prior, prior),
+            (
+                MethodConfig::Combiner(self.combiner()),
+                &over.combiner,
+                combiner,
+            ),
         ]
         .into_iter()
-        .max()
-        .unwrap_or(0)
+        .filter(|(_, _, used)| *used)
+        .map(|(config, over, _)| (config.memory_estimate(width, height), over.is_none()))
+        .collect();
+        let fitting = paths.iter().filter(|(_, fits)| *fits).map(|(e, _)| *e);
+        match fitting.max() {
+            Some(most) => most,
+            None => paths.iter().map(|(e, _)| *e).min().unwrap_or(0),
+        }
     }
 
-    /// Fits each path over the limit on its own, as the estimate takes the largest.
+    /// Fits each path over the limit on its own, as the estimate takes the largest; then,
+    /// with `fallback` set, leaves out each path still over it, as it would leave out a path
+    /// whose library is missing: the frame takes the next rule.
     fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
         fit_within(&mut self.frgr, width, height, limit);
         fit_within(&mut self.gradnet, width, height, limit);
         fit_within(&mut self.l1, width, height, limit);
         fit_within(&mut self.prior, width, height, limit);
         fit_within(&mut self.combiner, width, height, limit);
+        if !self.fallback {
+            return;
+        }
+        let over = |config: MethodConfig| {
+            let estimate = config.memory_estimate(width, height);
+            (estimate > limit).then(|| {
+                format!(
+                    "needs about {} MiB, more than the limit of {} MiB",
+                    estimate.div_ceil(MIB),
+                    limit / MIB
+                )
+            })
+        };
+        self.over = Over {
+            prior: over(MethodConfig::PoissonL1(self.prior)),
+            combiner: over(MethodConfig::Combiner(self.combiner())),
+            gradnet: over(MethodConfig::GradNet(self.gradnet.clone())),
+            frgr: over(MethodConfig::Frgr(self.frgr)),
+            l1: over(MethodConfig::PoissonL1(self.l1)),
+        };
     }
 }
 
@@ -307,7 +372,7 @@ pub(crate) struct Auto {
 }
 
 impl Auto {
-    /// Plans the prior path when `use_prior` is set (its buffers, not OIDN, which is loaded
+    /// Plans the prior path when `use_prior` is set and a memory limit leaves it in (its buffers, not OIDN, which is loaded
     /// by the first frame that needs it), so that its allocation fails here rather than in an
     /// execute, and does not delay a cancel of the first frame (making a 1280 x 720 L1 plan
     /// writes 140 MB: 70 ms; the combiner's, with one and ONNX Runtime's session, about 0.2
@@ -321,16 +386,17 @@ impl Auto {
         height: usize,
     ) -> Result<Self> {
         let mut auto = Auto {
-            config,
             context: context.clone(),
             width,
             height,
             plans: Vec::new(),
-            gradnet_error: None,
-            combiner_error: None,
+            // A path a memory limit left out is one that cannot run here.
+            gradnet_error: config.over.gradnet.clone(),
+            combiner_error: config.over.combiner.clone(),
             oidn_error: None,
+            config,
         };
-        if auto.config.use_prior {
+        if auto.config.use_prior && auto.config.over.prior.is_none() {
             let planned = auto.config.use_combiner && auto.combiner_unplanned().is_none();
             if !planned {
                 auto.plan("prior", &MethodConfig::PoissonL1(auto.config.prior))?;
@@ -433,10 +499,12 @@ impl Reconstructor for Auto {
         report: &mut Report,
         progress: &Progress,
     ) -> Result<()> {
-        let available = if self.config.use_prior {
-            self.prior_available(frame)
-        } else {
+        let available = if !self.config.use_prior {
             Err("use_prior is false".into())
+        } else if let Some(over) = &self.config.over.prior {
+            Err(format!("the prior path {over}"))
+        } else {
+            self.prior_available(frame)
         };
         let no_prior = match available {
             Ok(why) => {
@@ -489,10 +557,20 @@ impl Reconstructor for Auto {
                     "auto: GradNet cannot run here ({first_line}), and fallback is false"
                 )));
             }
-            let (fallback, because) = self.config.without_gradnet(frame);
+            let (mut fallback, mut because) = self.config.without_gradnet(frame);
+            if let (MethodConfig::Frgr(_), Some(over)) = (&fallback, &self.config.over.frgr) {
+                because = format!("{because}, but it {over}: l1");
+                fallback = MethodConfig::PoissonL1(self.config.l1);
+            }
             reason = format!("GradNet cannot run ({first_line}); {because}");
             path = fallback.method().name();
             choice = fallback;
+        }
+        if let (MethodConfig::PoissonL1(_), Some(over)) = (&choice, &self.config.over.l1) {
+            return Err(Error::OutOfMemory(format!(
+                "auto: no path for this frame fits the memory limit: no prior ({no_prior}); \
+                 {reason}, but l1 {over}"
+            )));
         }
         report.note(format!("auto: no prior ({no_prior}); {reason}"));
         report.method = format!("auto -> {}", choice.method());
