@@ -189,18 +189,11 @@ fn a_memory_limit_leaves_out_the_paths_over_it() {
         note(&report)
     );
     let err = plan(no_prior(), l1 - 1).unwrap_err();
-    assert!(
-        matches!(err, gdrecon::Error::OutOfMemory(_))
-            && err
-                .to_string()
-                .contains(&format!("auto for {w} x {h} needs about {l1} MiB")),
-        "{err}"
-    );
+    out_of_memory(&err, &format!("auto for {w} x {h} needs about {l1} MiB"));
     let mut strict = no_prior();
     strict.fallback = false;
     plan(strict.clone(), gradnet).unwrap();
-    let err = plan(strict, gradnet - 1).unwrap_err();
-    assert!(matches!(err, gdrecon::Error::OutOfMemory(_)), "{err}");
+    out_of_memory(&plan(strict, gradnet - 1).unwrap_err(), "");
 }
 
 /// At 3840 x 2160 GradNet's least (about 0.7 GB) is under L1's (about 1.2 GB): under a limit
@@ -223,9 +216,7 @@ fn where_only_gradnet_fits_a_frame_it_cannot_run_is_refused() {
     }
     let options = ContextOptions::with_threads(Some(2)).with_max_memory_mb(limit);
     let context = Context::new(options).unwrap();
-    let mut missing = without_gradnet();
-    missing.gradnet.model = Some("/nonexistent/gradnet.onnx".into());
-    let mut plan = Plan::new(&context, &MethodConfig::Auto(missing), w, h).unwrap();
+    let mut plan = Plan::new(&context, &MethodConfig::Auto(without_gradnet()), w, h).unwrap();
     let zeros = || gdrecon::Image::zeros(3, w, h);
     let frame = gdrecon::FrameBuilder::new()
         .image(gdrecon::Layer::Color, zeros())
@@ -234,11 +225,13 @@ fn where_only_gradnet_fits_a_frame_it_cannot_run_is_refused() {
         .build(Policy::Replace)
         .unwrap();
     let err = plan.execute(&frame, &Progress::none()).unwrap_err();
+    out_of_memory(&err, &format!("but l1 needs about {l1} MiB"));
+}
+
+/// `err` is `OutOfMemory` and says `text`.
+fn out_of_memory(err: &gdrecon::Error, text: &str) {
     assert!(
-        matches!(err, gdrecon::Error::OutOfMemory(_))
-            && err
-                .to_string()
-                .contains(&format!("but l1 needs about {l1} MiB")),
+        matches!(err, gdrecon::Error::OutOfMemory(_)) && err.to_string().contains(text),
         "{err}"
     );
 }
