@@ -299,10 +299,10 @@ gdr_error gdr_context_release(gdr_context **ctx);
 // `"max_memory_mb"`: the most memory, in MiB, one filter's plan may need beyond its images.
 // As OIDN's `maxMemoryMB`, it sizes tiles: GradNet and the combiner (down to tiles of four
 // margins a side) and OIDN's scratch (down to 512 MiB) run in smaller tiles to fit, the same
-// image up to rounding in more time; `"auto"` leaves out the paths that do not fit. `gdr_filter_commit`
-// refuses a method and size whose estimate (buffers, scratch, output, OIDN's or ONNX
-// Runtime's share) is over it even so with `GDR_ERROR_OUT_OF_MEMORY` and a message giving the
-// estimate and the limit. 0 (the default) is no limit. On Linux the address space left under
+// image up to rounding in more time; `"auto"` leaves out the paths that do not fit.
+// `gdr_filter_commit` refuses a method and size whose estimate (buffers, scratch, output,
+// OIDN's or ONNX Runtime's share) is over it even so with `GDR_ERROR_OUT_OF_MEMORY` and a
+// message giving the estimate and the limit. 0 (the default) is no limit. On Linux the address space left under
 // the process's limit (`ulimit -v`) bounds a commit the same way.
 gdr_error gdr_context_set_int(gdr_context *ctx, const char *name, int32_t value);
 

@@ -27,8 +27,9 @@ pub struct ContextOptions {
     /// once (down to tiles of four margins a side, as OIDN's stop at three overlaps), and
     /// OIDN's scratch (down to 512 MiB), to fit (the same image up to rounding, in more
     /// time), and refuses with [`Error::OutOfMemory`] only a plan whose smallest tiles are
-    /// still over it (`auto` leaves out the paths over it and is refused when none fits). 0 means no limit (the default); the address space the process has left under its
-    /// limit (`ulimit -v`) bounds plans the same way either way.
+    /// still over it (`auto` leaves out the paths over it and is refused when none fits). 0
+    /// means no limit (the default); the address space the process has left under its limit
+    /// (`ulimit -v`) bounds plans the same way either way.
     pub max_memory_mb: u64,
 }
 

@@ -372,11 +372,11 @@ pub(crate) struct Auto {
 }
 
 impl Auto {
-    /// Plans the prior path when `use_prior` is set and a memory limit leaves it in (its buffers, not OIDN, which is loaded
-    /// by the first frame that needs it), so that its allocation fails here rather than in an
-    /// execute, and does not delay a cancel of the first frame (making a 1280 x 720 L1 plan
-    /// writes 140 MB: 70 ms; the combiner's, with one and ONNX Runtime's session, about 0.2
-    /// s): the combiner when `use_combiner` is set and it can be planned (else why not is
+    /// Plans the prior path when `use_prior` is set and a memory limit leaves it in (its
+    /// buffers, not OIDN, which is loaded by the first frame that needs it), so that its
+    /// allocation fails here rather than in an execute, and does not delay a cancel of the
+    /// first frame (making a 1280 x 720 L1 plan writes 140 MB: 70 ms; the combiner's, with
+    /// one and ONNX Runtime's session, about 0.2 s): the combiner when `use_combiner` is set and it can be planned (else why not is
     /// kept for the notes), L1 on the prior otherwise. The other paths depend on the frames
     /// and are planned by the first frame that takes them.
     pub(crate) fn new(
