@@ -369,7 +369,7 @@ fn a_memory_limit_tiles_oidn_to_the_same_image() {
     };
     assert_eq!(
         scratch(&report),
-        "scratch 512 MiB (lowered to fit max_memory_mb)"
+        "scratch 512 MiB (lowered to fit the memory limit)"
     );
     assert_eq!(scratch(&free), "scratch 1024 MiB");
 }

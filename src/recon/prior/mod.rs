@@ -324,7 +324,7 @@ impl Prior {
             if self.scratch == Scratch::default() {
                 ""
             } else {
-                " (lowered to fit max_memory_mb)"
+                " (lowered to fit the memory limit)"
             }
         ));
         Ok(image)
