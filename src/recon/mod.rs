@@ -602,8 +602,8 @@ fn check_memory(
         if estimate > left {
             return Err(Error::OutOfMemory(format!(
                 "method {} for {width} x {height} needs about {} MiB, more than the {} MiB of \
-                 address space the process has left under its limit (ulimit -v), less 512 MiB \
-                 for the libraries and threads it loads",
+                 address space a plan may count on under the process's limit (ulimit -v: what \
+                 is left, less 512 MiB for the libraries and threads it loads)",
                 config.method(),
                 mib(estimate),
                 left / MIB
