@@ -603,10 +603,11 @@ fn check_memory(
             return Err(Error::OutOfMemory(format!(
                 "method {} for {width} x {height} needs about {} MiB, more than the {} MiB of \
                  address space a plan may count on under the process's limit (ulimit -v: what \
-                 is left, less 512 MiB for the libraries and threads it loads)",
+                 is left, less {} MiB for the libraries and threads it loads)",
                 config.method(),
                 mib(estimate),
-                left / MIB
+                left / MIB,
+                ADDRESS_MARGIN / MIB
             )));
         }
     }
@@ -621,7 +622,6 @@ fn check_memory(
 /// against 1.27, `gradnet` 0.73 against 0.97 (AMD EPYC Zen 4, fifty-ninth session). Without
 /// it, `l1 --preset prior` planned under `ulimit -v 3500000` and failed 16 s later allocating
 /// an image.
-#[cfg(any(target_os = "linux", test))]
 const ADDRESS_MARGIN: u64 = 512 * MIB;
 
 /// What a plan may count on under an address-space limit of `limit` bytes with `used` already
