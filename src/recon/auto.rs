@@ -76,21 +76,10 @@ pub struct AutoConfig {
     /// Fall back to the next rule when the preferred path cannot run here (the default);
     /// false: fail instead, so that one frame gives one image on every machine.
     pub fallback: bool,
-    /// The paths a memory limit leaves out (set by [`Register::fit_memory`] when `fallback`
-    /// is set): each one's estimate at its smallest tiles is over the limit.
-    over: Over,
-}
-
-/// Why each path a memory limit leaves out cannot run (`None`: it fits): "needs about N MiB,
-/// more than the limit of L MiB".
-#[derive(Clone, Debug, Default, PartialEq)]
-struct Over {
-    /// L1 on the prior, and with it the combiner.
-    prior: Option<String>,
-    combiner: Option<String>,
-    gradnet: Option<String>,
-    frgr: Option<String>,
-    l1: Option<String>,
+    /// The memory limit the paths were fitted to (set by [`Register::fit_memory`] when
+    /// `fallback` is set): a path whose estimate is still over it is left out
+    /// ([`AutoConfig::over`]).
+    limit: Option<u64>,
 }
 
 /// `auto`'s own switch, declared in a table like every parameter.
@@ -151,7 +140,7 @@ impl Default for AutoConfig {
             use_prior: Rules::default().use_prior,
             use_combiner: Rules::default().use_combiner,
             fallback: Rules::default().fallback,
-            over: Over::default(),
+            limit: None,
         }
     }
 }
@@ -163,6 +152,20 @@ impl AutoConfig {
             use_combiner: self.use_combiner,
             fallback: self.fallback,
         }
+    }
+
+    /// Why `path` is left out under the memory limit it was fitted to, `None` when it fits
+    /// (or there is none): "needs about N MiB, more than the limit of L MiB".
+    fn over(&self, path: &MethodConfig, width: usize, height: usize) -> Option<String> {
+        let limit = self.limit?;
+        let estimate = path.memory_estimate(width, height);
+        (estimate > limit).then(|| {
+            format!(
+                "needs about {} MiB, more than the limit of {} MiB",
+                estimate.div_ceil(MIB),
+                limit / MIB
+            )
+        })
     }
 
     /// The combiner's settings with `gradnet`'s runtime path.
@@ -297,63 +300,37 @@ impl Register for AutoConfig {
     /// earlier frames are kept, so a sequence whose frames take different paths can hold more
     /// than this: the estimate covers one path, as one frame takes.
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
-        let over = &self.over;
         let (prior, combiner) = (self.use_prior, self.use_prior && self.use_combiner);
-        let paths: Vec<(u64, bool)> = [
-            (MethodConfig::Frgr(self.frgr), &over.frgr, true),
-            (
-                MethodConfig::GradNet(self.gradnet.clone()),
-                &over.gradnet,
-                true,
-            ),
-            (MethodConfig::PoissonL1(self.l1), &over.l1, true),
-            (MethodConfig::PoissonL1(self.prior), &over.prior, prior),
-            (
-                MethodConfig::Combiner(self.combiner()),
-                &over.combiner,
-                combiner,
-            ),
+        let estimates: Vec<u64> = [
+            (MethodConfig::Frgr(self.frgr), true),
+            (MethodConfig::GradNet(self.gradnet.clone()), true),
+            (MethodConfig::PoissonL1(self.l1), true),
+            (MethodConfig::PoissonL1(self.prior), prior),
+            (MethodConfig::Combiner(self.combiner()), combiner),
         ]
         .into_iter()
-        .filter(|(_, _, used)| *used)
-        .map(|(config, over, _)| (config.memory_estimate(width, height), over.is_none()))
+        .filter(|(_, used)| *used)
+        .map(|(path, _)| path.memory_estimate(width, height))
         .collect();
-        let fitting = paths.iter().filter(|(_, fits)| *fits).map(|(e, _)| *e);
-        match fitting.max() {
+        let fits = |e: &u64| self.limit.is_none_or(|limit| *e <= limit);
+        match estimates.iter().copied().filter(fits).max() {
             Some(most) => most,
-            None => paths.iter().map(|(e, _)| *e).min().unwrap_or(0),
+            None => estimates.iter().copied().min().unwrap_or(0),
         }
     }
 
     /// Fits each path over the limit on its own, as the estimate takes the largest; then,
-    /// with `fallback` set, leaves out each path still over it, as it would leave out a path
-    /// whose library is missing: the frame takes the next rule.
+    /// with `fallback` set, keeps the limit, so that each path still over it is left out, as
+    /// a path whose library is missing is: the frame takes the next rule.
     fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
         fit_within(&mut self.frgr, width, height, limit);
         fit_within(&mut self.gradnet, width, height, limit);
         fit_within(&mut self.l1, width, height, limit);
         fit_within(&mut self.prior, width, height, limit);
         fit_within(&mut self.combiner, width, height, limit);
-        if !self.fallback {
-            return;
+        if self.fallback {
+            self.limit = Some(limit);
         }
-        let over = |config: MethodConfig| {
-            let estimate = config.memory_estimate(width, height);
-            (estimate > limit).then(|| {
-                format!(
-                    "needs about {} MiB, more than the limit of {} MiB",
-                    estimate.div_ceil(MIB),
-                    limit / MIB
-                )
-            })
-        };
-        self.over = Over {
-            prior: over(MethodConfig::PoissonL1(self.prior)),
-            combiner: over(MethodConfig::Combiner(self.combiner())),
-            gradnet: over(MethodConfig::GradNet(self.gradnet.clone())),
-            frgr: over(MethodConfig::Frgr(self.frgr)),
-            l1: over(MethodConfig::PoissonL1(self.l1)),
-        };
     }
 }
 
@@ -391,18 +368,28 @@ impl Auto {
             height,
             plans: Vec::new(),
             // A path a memory limit left out is one that cannot run here.
-            gradnet_error: config.over.gradnet.clone(),
-            combiner_error: config.over.combiner.clone(),
+            gradnet_error: config.over(
+                &MethodConfig::GradNet(config.gradnet.clone()),
+                width,
+                height,
+            ),
+            combiner_error: config.over(&MethodConfig::Combiner(config.combiner()), width, height),
             oidn_error: None,
             config,
         };
-        if auto.config.use_prior && auto.config.over.prior.is_none() {
+        let prior = MethodConfig::PoissonL1(auto.config.prior);
+        if auto.config.use_prior && auto.config.over(&prior, width, height).is_none() {
             let planned = auto.config.use_combiner && auto.combiner_unplanned().is_none();
             if !planned {
                 auto.plan("prior", &MethodConfig::PoissonL1(auto.config.prior))?;
             }
         }
         Ok(auto)
+    }
+
+    /// Why `path` is left out under the memory limit ([`AutoConfig::over`] at this size).
+    fn over(&self, path: &MethodConfig) -> Option<String> {
+        self.config.over(path, self.width, self.height)
     }
 
     fn plan(
@@ -501,7 +488,7 @@ impl Reconstructor for Auto {
     ) -> Result<()> {
         let available = if !self.config.use_prior {
             Err("use_prior is false".into())
-        } else if let Some(over) = &self.config.over.prior {
+        } else if let Some(over) = self.over(&MethodConfig::PoissonL1(self.config.prior)) {
             Err(format!("the prior path {over}"))
         } else {
             self.prior_available(frame)
@@ -558,7 +545,7 @@ impl Reconstructor for Auto {
                 )));
             }
             let (mut fallback, mut because) = self.config.without_gradnet(frame);
-            if let (MethodConfig::Frgr(_), Some(over)) = (&fallback, &self.config.over.frgr) {
+            if let (MethodConfig::Frgr(_), Some(over)) = (&fallback, self.over(&fallback)) {
                 because = format!("{because}, but it {over}: l1");
                 fallback = MethodConfig::PoissonL1(self.config.l1);
             }
@@ -566,7 +553,7 @@ impl Reconstructor for Auto {
             path = fallback.method().name();
             choice = fallback;
         }
-        if let (MethodConfig::PoissonL1(_), Some(over)) = (&choice, &self.config.over.l1) {
+        if let (MethodConfig::PoissonL1(_), Some(over)) = (&choice, self.over(&choice)) {
             return Err(Error::OutOfMemory(format!(
                 "auto: no path for this frame fits the memory limit: no prior ({no_prior}); \
                  {reason}, but l1 {over}"

@@ -323,9 +323,7 @@ impl Register for CombinerConfig {
             return;
         }
         let taken = prior_memory(width, height, self.scratch).saturating_add(solve);
-        let most = super::pixels_within(limit, taken, NET_BYTES, NET_FIXED);
-        // A frame within the least fitted tile runs whole: tiled, it would run as much.
-        let most = most.max(OVERLAP.least_fitted());
+        let most = OVERLAP.fitted(super::pixels_within(limit, taken, NET_BYTES, NET_FIXED));
         self.whole_pixels = self.whole_pixels.min(most);
         if self.tile_pixels > 0 {
             self.tile_pixels = self.tile_pixels.min(most);

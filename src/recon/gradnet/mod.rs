@@ -199,7 +199,6 @@ impl GradNetConfig {
     /// (so that a limit under it is refused, not run in tiles that are mostly margin).
     fn budgets(&self, int8: bool) -> (usize, usize) {
         let least = tiles::GRADNET.min_tile().pow(2);
-        let least_fitted = tiles::GRADNET.least_fitted();
         let (whole, tile) = if int8 {
             (self.whole_pixels, self.tile_pixels)
         } else {
@@ -214,10 +213,9 @@ impl GradNetConfig {
                 let (most_whole, most_tile) = caps[usize::from(!int8)];
                 let tile = match tile {
                     0 => 0,
-                    t => t.min(most_tile.max(least_fitted)),
+                    t => t.min(tiles::GRADNET.fitted(most_tile)),
                 };
-                // A frame within the least fitted tile runs whole: tiled, it would run as much.
-                (whole.min(most_whole.max(least_fitted)), tile)
+                (whole.min(tiles::GRADNET.fitted(most_whole)), tile)
             }
             None => (whole, tile),
         }

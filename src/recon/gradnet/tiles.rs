@@ -45,6 +45,13 @@ impl Overlap {
         let side = (4 * self.margin).div_ceil(self.multiple) * self.multiple;
         side * side
     }
+
+    /// The budget a memory limit leaves, `most` pixels, raised to [`Overlap::least_fitted`]:
+    /// for a tile, and for a whole frame (a frame within the least fitted tile runs whole,
+    /// as tiled it would run as many pixels).
+    pub(crate) fn fitted(self, most: usize) -> usize {
+        most.max(self.least_fitted())
+    }
 }
 
 /// GradNet's tiles: its receptive field (84 measured) rounded up to 8.
