@@ -11,7 +11,7 @@
 use std::path::{Path, PathBuf};
 
 use assert_cmd::Command;
-use gdrecon::recon::PoissonL1Config;
+use gdrecon::recon::{AutoConfig, PoissonL1Config};
 use gdrecon::{
     io, metrics, Context, ContextOptions, Frame, Image, Layer, Method, MethodConfig, Plan, Policy,
     Progress, Report,
@@ -372,4 +372,52 @@ fn a_memory_limit_tiles_oidn_to_the_same_image() {
         "scratch 512 MiB (lowered to fit the memory limit)"
     );
     assert_eq!(scratch(&free), "scratch 1024 MiB");
+}
+
+/// A frame that brings its own prior never allocates OIDN's scratch: under a limit that leaves
+/// the combiner out for frames OIDN must denoise (their scratch counted: 580 B a pixel, 127 MiB
+/// at 640 x 360), a frame with a `prior` layer still takes it, and the same frame without the
+/// layer does not. The combiner then runs in tiles fitted without the scratch.
+#[test]
+fn a_frame_with_its_own_prior_is_held_to_the_combiner_without_oidn() {
+    if !cfg!(feature = "gradnet") {
+        return;
+    }
+    const MIB: u64 = 1 << 20;
+    let (w, h) = (640, 360);
+    let least = MethodConfig::Combiner(AutoConfig::default().combiner)
+        .fitted_to(w, h, 0)
+        .memory_estimate(w, h)
+        .div_ceil(MIB);
+    let options = ContextOptions::with_threads(Some(2)).with_max_memory_mb(least - 60);
+    let context = Context::new(options).unwrap();
+    let auto = MethodConfig::Auto(AutoConfig::default());
+    let mut plan = Plan::new(&context, &auto, w, h).unwrap();
+    let frame = gdrecon::synth::synthetic_frame(w, h, 16.0, 7);
+    let given = frame
+        .clone()
+        .into_builder()
+        .image(Layer::Prior, frame.color().clone())
+        .build(Policy::Replace)
+        .unwrap();
+    let (out, report) = plan.execute(&given, &Progress::none()).unwrap();
+    assert!(out.all_finite());
+    assert_eq!(report.method, "auto -> combiner", "{:?}", report.notes);
+    // In tiles fitted without the scratch: larger than the least (96 x 96) that the fit with
+    // it comes down to.
+    let tiles = report
+        .notes
+        .iter()
+        .find_map(|n| n.split("tile(s) of ").nth(1));
+    let side = |s: &str| s.trim().parse::<usize>().unwrap();
+    let pixels = tiles
+        .and_then(|t| t.split_once(" x "))
+        .map(|(a, b)| side(a) * side(b));
+    assert!(pixels > Some(2 * 96 * 96), "{:?}", report.notes);
+    let (out, report) = plan.execute(&frame, &Progress::none()).unwrap();
+    assert!(out.all_finite());
+    // The combiner with OIDN's scratch is what the limit left out.
+    assert_eq!(report.method, "auto -> l1 (prior)", "{:?}", report.notes);
+    let why = format!("no combiner (needs about {least} MiB");
+    assert!(report.notes[0].contains(&why), "{:?}", report.notes);
 }

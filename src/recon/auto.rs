@@ -33,7 +33,11 @@
 //! refused only when no path fits (naming the smallest need), and a frame whose rules lead
 //! only to paths left out gets `Error::OutOfMemory` saying so (GradNet not loading where only
 //! it fits). With `fallback` false nothing is left out, and a plan any of whose paths is over
-//! the limit is refused.
+//! the limit is refused. A frame that brings its own prior (a `prior` layer) is held to the
+//! prior paths' needs without Open Image Denoise's scratch, which it never allocates: under a
+//! limit that leaves OIDN out it still takes the combiner (in tiles fitted without that
+//! scratch) or L1 on its prior. Under a limit one path's plan is held at a time: a frame that
+//! takes another path than the last gives the last one's plan back first.
 //!
 //! The chosen method is planned on the first frame that needs it and kept: a sequence of
 //! frames of one kind plans once. The report names the method that ran (`auto -> combiner`)
@@ -42,6 +46,7 @@
 //! then an error instead of another method's image.
 
 use super::param::{Param, ParamInfo, Params, Settings, Value};
+use super::prior::Scratch;
 use super::{
     fit_within, CombinerConfig, FrgrConfig, GradNetConfig, Method, MethodConfig, PoissonL1Config,
     Reconstructor, Register, MIB,
@@ -80,6 +85,10 @@ pub struct AutoConfig {
     /// `fallback` is set): a path whose estimate is still over it is left out
     /// ([`AutoConfig::over`]).
     limit: Option<u64>,
+    /// The combiner fitted for frames that bring their own prior (no OIDN scratch), set
+    /// beside the limit when the one fitted with the scratch is still over it: only such
+    /// frames can take the combiner then, in the larger tiles this leaves them.
+    given: Option<CombinerConfig>,
 }
 
 /// `auto`'s own switch, declared in a table like every parameter.
@@ -141,6 +150,7 @@ impl Default for AutoConfig {
             use_combiner: Rules::default().use_combiner,
             fallback: Rules::default().fallback,
             limit: None,
+            given: None,
         }
     }
 }
@@ -173,6 +183,18 @@ impl AutoConfig {
         let mut combiner = self.combiner.clone();
         combiner.runtime.clone_from(&self.gradnet.runtime);
         combiner
+    }
+
+    /// The combiner as `frame` runs it: fitted without OIDN's scratch when it brings its own
+    /// prior and a limit left out the combiner that counts it.
+    fn combiner_for(&self, frame: &Frame) -> CombinerConfig {
+        match (&self.given, frame.prior()) {
+            (Some(given), Some(_)) => CombinerConfig {
+                runtime: self.gradnet.runtime.clone(),
+                ..given.clone()
+            },
+            _ => self.combiner(),
+        }
     }
 
     /// The method `frame` gets without a prior, and why (before checking that GradNet can
@@ -296,9 +318,10 @@ impl Register for AutoConfig {
 
     /// The largest of the paths it may plan (a frame's choice is made at execute), leaving
     /// out those switched off (`use_prior`, `use_combiner`) and those a memory limit left out
-    /// (when it left out all, the smallest: what a plan needs at least). Plans made for
-    /// earlier frames are kept, so a sequence whose frames take different paths can hold more
-    /// than this: the estimate covers one path, as one frame takes.
+    /// (when it left out all, the smallest: what a plan needs at least): one path, as one
+    /// frame takes. Without a limit, plans made for earlier frames are kept, so a sequence
+    /// whose frames take different paths can hold more than this; under one, a frame that
+    /// takes another path gives the plan it holds back first.
     fn memory_estimate(&self, width: usize, height: usize) -> u64 {
         let (prior, combiner) = (self.use_prior, self.use_prior && self.use_combiner);
         let estimates: Vec<u64> = [
@@ -323,6 +346,7 @@ impl Register for AutoConfig {
     /// with `fallback` set, keeps the limit, so that each path still over it is left out, as
     /// a path whose library is missing is: the frame takes the next rule.
     fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
+        let unfitted = self.combiner.clone();
         fit_within(&mut self.frgr, width, height, limit);
         fit_within(&mut self.gradnet, width, height, limit);
         fit_within(&mut self.l1, width, height, limit);
@@ -330,6 +354,14 @@ impl Register for AutoConfig {
         fit_within(&mut self.combiner, width, height, limit);
         if self.fallback {
             self.limit = Some(limit);
+            if MethodConfig::Combiner(self.combiner()).memory_estimate(width, height) > limit {
+                let mut given = CombinerConfig {
+                    scratch: Scratch::NONE,
+                    ..unfitted
+                };
+                fit_within(&mut given, width, height, limit);
+                self.given = Some(given);
+            }
         }
     }
 }
@@ -373,13 +405,16 @@ impl Auto {
                 width,
                 height,
             ),
-            combiner_error: config.over(&MethodConfig::Combiner(config.combiner()), width, height),
+            combiner_error: None,
             oidn_error: None,
             config,
         };
         let prior = MethodConfig::PoissonL1(auto.config.prior);
-        if auto.config.use_prior && auto.config.over(&prior, width, height).is_none() {
-            let planned = auto.config.use_combiner && auto.combiner_unplanned().is_none();
+        let combiner = MethodConfig::Combiner(auto.config.combiner());
+        if auto.config.use_prior && auto.over(&prior).is_none() {
+            let planned = auto.config.use_combiner
+                && auto.over(&combiner).is_none()
+                && auto.combiner_unplanned(&combiner).is_none();
             if !planned {
                 auto.plan("prior", &MethodConfig::PoissonL1(auto.config.prior))?;
             }
@@ -392,6 +427,26 @@ impl Auto {
         self.config.over(path, self.width, self.height)
     }
 
+    /// [`Auto::over`] for the prior paths as `frame` runs them: without OIDN's scratch when it
+    /// brings its own prior.
+    fn over_for(&self, frame: &Frame, path: &MethodConfig) -> Option<String> {
+        if frame.prior().is_none() {
+            return self.over(path);
+        }
+        let given = match path {
+            MethodConfig::PoissonL1(c) => MethodConfig::PoissonL1(PoissonL1Config {
+                scratch: Scratch::NONE,
+                ..*c
+            }),
+            MethodConfig::Combiner(c) => MethodConfig::Combiner(CombinerConfig {
+                scratch: Scratch::NONE,
+                ..c.clone()
+            }),
+            other => other.clone(),
+        };
+        self.over(&given)
+    }
+
     fn plan(
         &mut self,
         path: &'static str,
@@ -399,6 +454,12 @@ impl Auto {
     ) -> Result<&mut Box<dyn Reconstructor>> {
         if let Some(i) = self.plans.iter().position(|(p, _)| *p == path) {
             return Ok(&mut self.plans[i].1);
+        }
+        // Under a memory limit one path's plan at a time: the limit is what one path needs,
+        // and a frame that takes another path than the last (or than the one planned ahead)
+        // would otherwise hold both.
+        if self.config.limit.is_some() {
+            self.plans.clear();
         }
         let inner = config.instantiate(&self.context, self.width, self.height)?;
         self.plans.push((path, inner));
@@ -457,16 +518,20 @@ impl Auto {
         if !missing.is_empty() {
             return Some(format!("the frame lacks {}", missing.join(", ")));
         }
-        self.combiner_unplanned()
+        // A limit leaves it out, as a library that does not load does.
+        let combiner = MethodConfig::Combiner(self.config.combiner_for(frame));
+        if let Some(over) = self.over_for(frame, &combiner) {
+            return Some(over);
+        }
+        self.combiner_unplanned(&combiner)
     }
 
     /// Plans the combiner unless it is planned already or could not be; why it could not
     /// (ONNX Runtime or the model, or memory; tried once, the failure kept), `None` when it is
     /// planned.
-    fn combiner_unplanned(&mut self) -> Option<String> {
+    fn combiner_unplanned(&mut self, choice: &MethodConfig) -> Option<String> {
         if self.combiner_error.is_none() {
-            let choice = MethodConfig::Combiner(self.config.combiner());
-            if let Err(e) = self.plan("combiner", &choice) {
+            if let Err(e) = self.plan("combiner", choice) {
                 self.combiner_error = Some(e.to_string().lines().next().unwrap_or_default().into());
             }
         }
@@ -488,7 +553,8 @@ impl Reconstructor for Auto {
     ) -> Result<()> {
         let available = if !self.config.use_prior {
             Err("use_prior is false".into())
-        } else if let Some(over) = self.over(&MethodConfig::PoissonL1(self.config.prior)) {
+        } else if let Some(over) = self.over_for(frame, &MethodConfig::PoissonL1(self.config.prior))
+        {
             Err(format!("the prior path {over}"))
         } else {
             self.prior_available(frame)
@@ -502,7 +568,7 @@ impl Reconstructor for Auto {
                              the validation split)"
                         ));
                         report.method = "auto -> combiner".into();
-                        let choice = MethodConfig::Combiner(self.config.combiner());
+                        let choice = MethodConfig::Combiner(self.config.combiner_for(frame));
                         let plan = self.plan("combiner", &choice)?;
                         progress.check()?;
                         return plan.reconstruct_into(frame, out, report, progress);

@@ -47,7 +47,7 @@ use super::multigrid::{multigrid_bytes, Multigrid};
 use super::ops::{apply_weighted, plane_sums, row_sum, weighted_row, Dims, Operator, RowWeights};
 use super::param::{choices, Param, Params, Preset, Range};
 use super::poisson_l2::{ALPHA_RANGE, DEFAULT_ALPHA};
-use super::prior::{prior_memory, DataTerm, OnPrior, Scratch, DATA_DOC, PRIOR_ALPHA_DOC};
+use super::prior::{on_prior_memory, DataTerm, OnPrior, Scratch, DATA_DOC, PRIOR_ALPHA_DOC};
 use super::{bytes_for, Method, Reconstructor, Register, MIB};
 use crate::context::Context;
 use crate::error::Result;
@@ -455,14 +455,14 @@ impl Register for PoissonL1Config {
         let own = self.own_memory(width, height);
         match self.data {
             DataTerm::Colour => own,
-            DataTerm::Prior => own.saturating_add(prior_memory(width, height, self.scratch)),
+            DataTerm::Prior => own.saturating_add(on_prior_memory(width, height, self.scratch)),
         }
     }
 
     fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
         if self.data == DataTerm::Prior {
             let own = self.own_memory(width, height);
-            self.scratch.fit(width, height, limit, own);
+            self.scratch.fit_on_prior(width, height, limit, own);
         }
     }
 }

@@ -9,7 +9,7 @@
 use super::dct::DctPoisson;
 use super::ops::{grad_adjoint, Dims};
 use super::param::{Param, Params, Range};
-use super::prior::{prior_memory, DataTerm, OnPrior, Scratch, DATA_DOC, PRIOR_ALPHA_DOC};
+use super::prior::{on_prior_memory, DataTerm, OnPrior, Scratch, DATA_DOC, PRIOR_ALPHA_DOC};
 use super::{bytes_for, Method, Reconstructor, Register, MIB};
 use crate::context::Context;
 use crate::error::Result;
@@ -114,14 +114,14 @@ impl Register for PoissonL2Config {
         let own = bytes_for(width, height, 44, MIB);
         match self.data {
             DataTerm::Colour => own,
-            DataTerm::Prior => own.saturating_add(prior_memory(width, height, self.scratch)),
+            DataTerm::Prior => own.saturating_add(on_prior_memory(width, height, self.scratch)),
         }
     }
 
     fn fit_memory(&mut self, width: usize, height: usize, limit: u64) {
         if self.data == DataTerm::Prior {
             self.scratch
-                .fit(width, height, limit, bytes_for(width, height, 44, MIB));
+                .fit_on_prior(width, height, limit, bytes_for(width, height, 44, MIB));
         }
     }
 }

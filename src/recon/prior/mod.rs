@@ -95,6 +95,20 @@ pub(crate) fn prior_memory(width: usize, height: usize, scratch: Scratch) -> u64
     )
 }
 
+/// What an [`OnPrior`] holds beside the solve it wraps: the prior's share ([`prior_memory`])
+/// and the [`anchored`] frame's copies of the gradients (6 f32 planes, 24 B a pixel; its colour
+/// is the prior, counted there). Without the copies `l1 --preset prior` at 3840 x 2160 peaked
+/// 190 MiB beyond its estimate, and over a limit it had been fitted to (`docs/benchmarks.md`,
+/// sixtieth session).
+pub(crate) fn on_prior_memory(width: usize, height: usize, scratch: Scratch) -> u64 {
+    prior_memory(width, height, scratch).saturating_add(gradient_copies(width, height))
+}
+
+/// The [`anchored`] frame's gradients.
+fn gradient_copies(width: usize, height: usize) -> u64 {
+    super::bytes_for(width, height, 24, 0)
+}
+
 /// Our share of [`prior_memory`]: the buffers and planar output, and OIDN's fixed part.
 fn ours(width: usize, height: usize) -> u64 {
     super::bytes_for(width, height, 60, 64 * super::MIB)
@@ -119,6 +133,10 @@ impl Default for Scratch {
 }
 
 impl Scratch {
+    /// None: no OIDN run, as for a frame that brings its own prior (what `auto` holds such a
+    /// frame's prior paths to).
+    pub(crate) const NONE: Scratch = Scratch(0);
+
     /// OIDN's `maxMemoryMB`.
     #[cfg_attr(not(feature = "oidn"), allow(dead_code))]
     pub(crate) fn mb(self) -> u64 {
@@ -130,6 +148,13 @@ impl Scratch {
     pub(crate) fn fit(&mut self, width: usize, height: usize, limit: u64, taken: u64) {
         let left = limit.saturating_sub(taken.saturating_add(ours(width, height))) / super::MIB;
         self.0 = self.0.min(left.max(OIDN_LEAST_MB));
+    }
+
+    /// [`Scratch::fit`] for an [`OnPrior`] around a solve that holds `own` bytes (see
+    /// [`on_prior_memory`]).
+    pub(crate) fn fit_on_prior(&mut self, width: usize, height: usize, limit: u64, own: u64) {
+        let taken = own.saturating_add(gradient_copies(width, height));
+        self.fit(width, height, limit, taken);
     }
 }
 
