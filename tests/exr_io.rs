@@ -312,12 +312,13 @@ fn htj2k_is_refused_before_its_decoder_allocates() {
 
 /// Inside a context's pool, blocks are compressed and decompressed in parallel: the file written
 /// is byte for byte the single-threaded one, and reading gives the same frame, for ZIP scan
-/// lines (our writer) and for f16 PIZ tiles (the `exr` crate's writer).
+/// lines (our writer, 32 blocks: three batches of up to 4 a thread) and for f16 PIZ tiles (the
+/// `exr` crate's writer).
 #[test]
 fn parallel_blocks_give_the_single_threaded_result() {
     let context = gdrecon::Context::new(gdrecon::ContextOptions::with_threads(Some(3))).unwrap();
     let dir = tmp();
-    let frame = gdrecon::synth::synthetic_frame(203, 97, 16.0, 5);
+    let frame = gdrecon::synth::synthetic_frame(203, 497, 16.0, 5);
     let (one, many) = (dir.path().join("one.exr"), dir.path().join("many.exr"));
     io::write_bundle(&one, &frame).unwrap();
     context.install(|| io::write_bundle(&many, &frame)).unwrap();
