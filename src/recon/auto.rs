@@ -427,8 +427,8 @@ impl Auto {
         self.config.over(path, self.width, self.height)
     }
 
-    /// [`Auto::over`] for the prior paths as `frame` runs them: without OIDN's scratch when it
-    /// brings its own prior.
+    /// [`Auto::over`] for a path as `frame` runs it: a prior path without OIDN's scratch when
+    /// the frame brings its own prior (other paths as they are).
     fn over_for(&self, frame: &Frame, path: &MethodConfig) -> Option<String> {
         if frame.prior().is_none() {
             return self.over(path);
@@ -501,8 +501,8 @@ impl Auto {
 
 impl Auto {
     /// Why this frame cannot take the combiner (`None`: it can): switched off, a layer it
-    /// needs is missing, or it could not be planned (ONNX Runtime or the model; tried once, the
-    /// failure kept).
+    /// needs is missing, over the memory limit as this frame runs it ([`Auto::over_for`]), or
+    /// it could not be planned (ONNX Runtime or the model; tried once, the failure kept).
     fn combiner_blocked(&mut self, frame: &Frame) -> Option<String> {
         if !self.config.use_combiner {
             return Some("use_combiner is false".into());
