@@ -180,21 +180,23 @@ impl AutoConfig {
 
     /// The combiner's settings with `gradnet`'s runtime path.
     fn combiner(&self) -> CombinerConfig {
-        let mut combiner = self.combiner.clone();
-        combiner.runtime.clone_from(&self.gradnet.runtime);
-        combiner
+        self.with_runtime(&self.combiner)
     }
 
     /// The combiner as `frame` runs it: fitted without OIDN's scratch when it brings its own
     /// prior and a limit left out the combiner that counts it.
     fn combiner_for(&self, frame: &Frame) -> CombinerConfig {
         match (&self.given, frame.prior()) {
-            (Some(given), Some(_)) => CombinerConfig {
-                runtime: self.gradnet.runtime.clone(),
-                ..given.clone()
-            },
+            (Some(given), Some(_)) => self.with_runtime(given),
             _ => self.combiner(),
         }
+    }
+
+    /// `combiner` with GradNet's runtime path, which it shares.
+    fn with_runtime(&self, combiner: &CombinerConfig) -> CombinerConfig {
+        let mut combiner = combiner.clone();
+        combiner.runtime.clone_from(&self.gradnet.runtime);
+        combiner
     }
 
     /// The method `frame` gets without a prior, and why (before checking that GradNet can
@@ -430,21 +432,10 @@ impl Auto {
     /// [`Auto::over`] for a path as `frame` runs it: a prior path without OIDN's scratch when
     /// the frame brings its own prior (other paths as they are).
     fn over_for(&self, frame: &Frame, path: &MethodConfig) -> Option<String> {
-        if frame.prior().is_none() {
-            return self.over(path);
+        match frame.prior() {
+            Some(_) => self.over(&path.given_prior()),
+            None => self.over(path),
         }
-        let given = match path {
-            MethodConfig::PoissonL1(c) => MethodConfig::PoissonL1(PoissonL1Config {
-                scratch: Scratch::NONE,
-                ..*c
-            }),
-            MethodConfig::Combiner(c) => MethodConfig::Combiner(CombinerConfig {
-                scratch: Scratch::NONE,
-                ..c.clone()
-            }),
-            other => other.clone(),
-        };
-        self.over(&given)
     }
 
     fn plan(

@@ -445,6 +445,22 @@ impl MethodConfig {
         fitted
     }
 
+    /// This configuration as a frame that brings its own prior (a `prior` layer) runs it:
+    /// without Open Image Denoise's scratch, which such a frame never allocates (every path
+    /// that can compute a prior; the others unchanged).
+    pub(crate) fn given_prior(&self) -> MethodConfig {
+        let mut given = self.clone();
+        match &mut given {
+            MethodConfig::PoissonL2(c) => c.scratch = prior::Scratch::NONE,
+            MethodConfig::PoissonL1(c) => c.scratch = prior::Scratch::NONE,
+            MethodConfig::Frgr(c) => c.scratch = prior::Scratch::NONE,
+            MethodConfig::Prior(c) => c.scratch = prior::Scratch::NONE,
+            MethodConfig::Combiner(c) => c.scratch = prior::Scratch::NONE,
+            _ => {}
+        }
+        given
+    }
+
     pub(crate) fn instantiate(
         &self,
         context: &Context,
