@@ -14,11 +14,13 @@
 //! it), so every frame a method sees has been validated and sanitised: equal sizes, required
 //! layers present, no NaN or Inf anywhere, no negative colour or variance.
 
+use std::collections::BTreeMap;
+
 use ndarray::ArrayView3;
 
 use crate::error::{Error, Result};
 use crate::image::Image;
-use crate::validate::{gradient_bound, sanitize_layer, Policy, SanitizeReport};
+use crate::validate::{gradient_bound, sanitize_layer, Policy, SanitizeReport, Summary};
 
 /// A layer of a frame bundle, named as in the EXR bundle (`layer.component`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -284,6 +286,17 @@ impl FrameBuilder {
     /// (non-finite by 0, negative colour and variance by 0) and counted in
     /// [`Frame::sanitized`].
     pub fn build(self, policy: Policy) -> Result<Frame> {
+        self.build_known(policy, &BTreeMap::new())
+    }
+
+    /// [`FrameBuilder::build`], skipping the sanitising pass over a layer that `known`
+    /// summarises as clean. The summaries must be of the layers' values as they are now (the
+    /// reader makes them while decoding, then builds at once).
+    pub(crate) fn build_known(
+        self,
+        policy: Policy,
+        known: &BTreeMap<Layer, Summary>,
+    ) -> Result<Frame> {
         let FrameBuilder { mut layers, spp } = self;
         let color = layers[Layer::Color.index()]
             .as_ref()
@@ -329,11 +342,15 @@ impl FrameBuilder {
         // Colour comes first in Layer::ALL: the gradients' bound is taken on the sanitised colour.
         for layer in Layer::ALL {
             let bound = matches!(layer, Layer::Dx | Layer::Dy).then(|| {
-                *gradients.get_or_insert_with(|| {
-                    gradient_bound(layers[Layer::Color.index()].as_ref().expect("checked"))
+                *gradients.get_or_insert_with(|| match known.get(&Layer::Color) {
+                    Some(color) if color.clean(Layer::Color, None) => color.gradient_bound(),
+                    _ => gradient_bound(layers[Layer::Color.index()].as_ref().expect("checked")),
                 })
             });
             if let Some(img) = layers[layer.index()].as_mut() {
+                if known.get(&layer).is_some_and(|s| s.clean(layer, bound)) {
+                    continue; // nothing to replace (and nothing for strict mode to refuse)
+                }
                 let counts = sanitize_layer(layer, img, policy, bound)?;
                 sanitized.record(layer, counts);
             }

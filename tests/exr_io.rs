@@ -150,6 +150,142 @@ fn accepts_f16_tiles_piz_lowercase_components_aliases_and_ignores_unknown_layers
     assert!(frame.variance().is_none() && frame.reference().is_none());
 }
 
+/// `read_bundle` skips the sanitising pass over layers it found clean while decoding them; the
+/// frame must be the one a full pass gives (`read_bundle_raw` + `into_frame`): the same values
+/// bit for bit, the same counts, the same refusal in strict mode. Each case puts one kind of
+/// value in one layer, in files whose blocks take each decoding path (ZIP and RLE, split;
+/// uncompressed; PIZ through the `exr` crate) and in f32 and f16 colour.
+#[test]
+fn values_found_clean_while_reading_give_the_sanitised_frame() {
+    let (w, h) = (37, 21); // two ZIP blocks, the second partial
+    let at = w * 16 + 5; // in the second block
+                         // (what, layer's channel, value): colour's brightest value is 1, so the gradients' bound
+                         // is 64.
+    let cases: [(&str, &str, f32); 11] = [
+        ("clean", "", 0.0),
+        ("NaN gradient", "dx.G", f32::NAN),
+        ("negative colour", "color.R", -1.0),
+        ("negative zero colour", "color.B", -0.0),
+        ("infinite variance", "variance.G", f32::INFINITY),
+        ("negative variance", "variance.B", -0.5),
+        ("negative normal", "normal.X", -2.0),
+        ("implausible gradient", "dy.B", 64.5),
+        ("gradient at the bound", "dy.R", -64.0),
+        ("absurd gradient", "dx.R", -1e30),
+        ("NaN colour", "color.G", f32::NAN),
+    ];
+    let layers = ["color", "dx", "dy", "variance", "normal"];
+    let components = |layer| match layer {
+        "normal" => ["X", "Y", "Z"],
+        _ => ["R", "G", "B"],
+    };
+    let codecs = [
+        x::Compression::ZIP16,
+        x::Compression::RLE,
+        x::Compression::Uncompressed,
+        x::Compression::PIZ,
+    ];
+    let dir = tmp();
+    let path = dir.path().join("values.exr");
+    for (what, poisoned, value) in cases {
+        for (codec, half) in codecs.into_iter().flat_map(|c| [(c, false), (c, true)]) {
+            let mut channels = Vec::new();
+            for layer in layers {
+                for (k, c) in components(layer).into_iter().enumerate() {
+                    let name = format!("{layer}.{c}");
+                    let mut v = plane(w, h, |i| match layer {
+                        "color" => ((i * 7 + k) % 11) as f32 / 10.0,
+                        "dx" | "dy" => ((i % 13) as f32 - 6.0) * 0.5,
+                        _ => (i % 5) as f32 * 0.25,
+                    });
+                    if name == poisoned {
+                        v[at] = value;
+                    }
+                    let samples = if half && layer == "color" {
+                        FlatSamples::F16(v.into_iter().map(half::f16::from_f32).collect())
+                    } else {
+                        FlatSamples::F32(v)
+                    };
+                    channels.push((name, samples));
+                }
+            }
+            let named = channels
+                .iter()
+                .map(|(n, s)| (n.as_str(), s.clone()))
+                .collect();
+            let encoding = x::Encoding {
+                compression: codec,
+                blocks: x::Blocks::ScanLines,
+                line_order: x::LineOrder::Increasing,
+            };
+            write_custom(
+                &path,
+                (w, h),
+                named,
+                encoding,
+                Some(AttributeValue::F32(4.0)),
+            );
+            for policy in [Policy::Replace, Policy::Strict] {
+                let case = format!("{what}, {codec:?}, f16 colour {half}, {policy:?}");
+                let read = io::read_bundle(&path, policy);
+                let passed = io::read_bundle_raw(&path).unwrap().into_frame(policy);
+                match (read, passed) {
+                    (Ok(read), Ok(passed)) => {
+                        assert_eq!(read.sanitized(), passed.sanitized(), "{case}");
+                        for layer in passed.present_layers() {
+                            let bits = |f: &gdrecon::Frame| -> Vec<u32> {
+                                let img = f.layer(layer).unwrap().as_slice();
+                                img.iter().map(|v| v.to_bits()).collect()
+                            };
+                            assert_eq!(bits(&read), bits(&passed), "{case}: {layer}");
+                        }
+                    }
+                    (Err(read), Err(passed)) => {
+                        assert_eq!(read.to_string(), passed.to_string(), "{case}")
+                    }
+                    (read, passed) => panic!("{case}: {read:?} against {passed:?}"),
+                }
+            }
+        }
+    }
+    // The cases mean what they say: a full pass replaces what each poisons (or keeps it).
+    let replaced = |what: &str| {
+        let (_, name, value) = cases.iter().find(|c| c.0 == what).unwrap();
+        let mut channels = Vec::new();
+        for layer in layers {
+            for c in components(layer) {
+                let n = format!("{layer}.{c}");
+                let mut v = plane(w, h, |_| 0.5);
+                if n == *name {
+                    v[at] = *value;
+                }
+                channels.push((n, FlatSamples::F32(v)));
+            }
+        }
+        let named = channels
+            .iter()
+            .map(|(n, s)| (n.as_str(), s.clone()))
+            .collect();
+        write_custom(&path, (w, h), named, x::Encoding::FAST_LOSSLESS, None);
+        io::read_bundle(&path, Policy::Replace)
+            .unwrap()
+            .sanitized()
+            .total()
+    };
+    assert_eq!(replaced("clean"), 0);
+    assert_eq!(replaced("negative normal"), 0);
+    assert_eq!(replaced("negative zero colour"), 0);
+    // Colour 0.5 everywhere: the bound is 32, so 64.5 and -64 are both implausible here.
+    for what in [
+        "NaN gradient",
+        "negative colour",
+        "implausible gradient",
+        "absurd gradient",
+    ] {
+        assert_eq!(replaced(what), 1, "{what}");
+    }
+}
+
 #[test]
 fn spp_attribute_that_is_not_positive_is_reported_as_unknown() {
     let dir = tmp();

@@ -28,7 +28,9 @@ use exr::prelude::f16;
 use rayon::prelude::*;
 
 use super::chunks::Offsets;
+use super::codec;
 use crate::image::Image;
+use crate::validate::Summary;
 
 /// Where one stored channel goes: image `image`, plane `plane` of the destinations.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -41,13 +43,14 @@ pub(super) struct Target {
 /// plane of each stored channel (in the header's channel order), `None` skips it. Every image
 /// must be as large as the parts' data window (all parts share one, checked by the caller).
 /// `layout` is the file's headers and offset tables as [`super::chunks::check`] accepted
-/// them. Errors are the decoder's, or a part that is missing blocks.
+/// them. Returns what each image's values are, summarised as they were converted (see
+/// [`Summary`]). Errors are the decoder's, or a part that is missing blocks.
 pub(super) fn decode(
     mut reader: impl Read + Seek + Send,
     layout: (&MetaData, &Offsets),
     targets: &[Vec<Option<Target>>],
     images: &mut [Image],
-) -> Result<(), Fault> {
+) -> Result<Vec<Summary>, Fault> {
     let (meta, offsets) = layout;
     if meta.headers.iter().any(subsampled) {
         // The `exr` crate's reader refuses these headers: the chunks are read here.
@@ -73,14 +76,15 @@ fn place_all(
     meta: &MetaData,
     targets: &[Vec<Option<Target>>],
     images: &mut [Image],
-) -> Result<(), Fault> {
+) -> Result<Vec<Summary>, Fault> {
     let mut received = vec![0usize; meta.headers.len()];
-    let mut place = |block: UncompressedBlock, images: &mut [Image]| -> Result<(), Fault> {
+    let mut summaries = vec![Summary::default(); images.len()];
+    let mut place = |block: Decoded, images: &mut [Image]| -> Result<(), Fault> {
         let part = block.index.layer;
         let header = meta.headers.get(part).ok_or("block of an unknown part")?;
         let none = Vec::new();
         let wanted = targets.get(part).unwrap_or(&none);
-        scatter(&block, header, wanted, images)?;
+        scatter(&block, header, wanted, images, &mut summaries)?;
         received[part] += block.index.pixel_size.area();
         Ok(())
     };
@@ -112,7 +116,7 @@ fn place_all(
             .into());
         }
     }
-    Ok(())
+    Ok(summaries)
 }
 
 /// Whether a part holds a subsampled channel.
@@ -188,19 +192,35 @@ fn read_chunks(
     Ok(chunks)
 }
 
-/// Converts the wanted lines of one block into their planes. A block stores, for each of its
-/// rows, each channel's samples of that row, in the header's channel order.
+/// A decompressed block: its bytes as a block lays them out (for each of its rows, each
+/// channel's samples of that row, in the header's channel order), or still `split` as ZIP and
+/// RLE store them (the even-indexed bytes of that layout, then the odd ones): [`scatter`]
+/// reads samples from the two halves directly rather than interleaving them first.
+struct Decoded {
+    data: Vec<u8>,
+    split: bool,
+    index: BlockIndex,
+}
+
+/// Converts the wanted lines of one block into their planes, adding their values to their
+/// image's summary.
 fn scatter(
-    block: &UncompressedBlock,
+    block: &Decoded,
     header: &Header,
     wanted: &[Option<Target>],
     images: &mut [Image],
+    summaries: &mut [Summary],
 ) -> Result<(), Fault> {
     let BlockIndex {
         pixel_position: pos,
         pixel_size: size,
         ..
     } = block.index;
+    // Every sample type has an even size, so a block's length and every line's offset are even.
+    if block.split && block.data.len() % 2 != 0 {
+        return Err("a block holds an odd number of bytes".into());
+    }
+    let (even, odd) = block.data.split_at(block.data.len() / 2);
     let mut offset = 0;
     let origin = header.own_attributes.layer_position;
     for row in 0..size.1 {
@@ -210,11 +230,11 @@ fn scatter(
                 continue; // a subsampled channel with no samples on this line
             };
             let len = samples * channel.sample_type.bytes_per_sample();
-            let bytes = block
-                .data
-                .get(offset..offset + len)
-                .ok_or("a block holds fewer bytes than its size needs")?;
-            offset += len;
+            let (start, end) = (offset, offset + len);
+            offset = end;
+            if end > block.data.len() {
+                return Err("a block holds fewer bytes than its size needs".into());
+            }
             let Some(Some(target)) = wanted.get(c) else {
                 continue;
             };
@@ -229,11 +249,21 @@ fn scatter(
                 .plane_mut(target.plane)
                 .into_slice()
                 .ok_or("planes are contiguous")?;
-            let start = (pos.1 + row) * width + pos.0;
+            let first = (pos.1 + row) * width + pos.0;
             let dst = plane
-                .get_mut(start..start + size.0)
+                .get_mut(first..first + size.0)
                 .ok_or("a block lies outside the data window")?;
-            convert(bytes, channel.sample_type, dst);
+            let kind = channel.sample_type;
+            if block.split {
+                let halves = (&even[start / 2..end / 2], &odd[start / 2..end / 2]);
+                convert_split(halves, kind, dst);
+            } else {
+                convert(&block.data[start..end], kind, dst);
+            }
+            summaries
+                .get_mut(target.image)
+                .ok_or("channel target out of range")?
+                .add(dst);
         }
     }
     if offset != block.data.len() {
@@ -251,20 +281,38 @@ fn line_samples(channel: &ChannelDescription, y: i32, width: usize) -> Option<us
     (y.rem_euclid(sy as i32) == 0).then_some(width / sx)
 }
 
-/// Decompresses one chunk: the `exr` crate's decoders, except for scan-line parts holding
-/// subsampled channels, which the crate decodes to the wrong size (it sizes every block as
-/// if no channel were subsampled): those are decoded here, for the codecs that are byte
-/// streams (none, RLE, ZIPS, ZIP), and refused naming the codec otherwise.
-fn decompress(chunk: Chunk, meta: &MetaData) -> Result<UncompressedBlock, Fault> {
+/// Decompresses one chunk. Scan-line blocks stored raw or with a byte-stream codec (NONE,
+/// RLE, ZIPS, ZIP: the usual output of renderers) are decoded here, ZIP and RLE left split;
+/// the rest by the `exr` crate's decoders. Scan-line parts holding subsampled channels are
+/// decoded here for those codecs (the crate sizes their blocks as if no channel were
+/// subsampled) and refused naming the codec otherwise.
+fn decompress(chunk: Chunk, meta: &MetaData) -> Result<Decoded, Fault> {
     let header = meta
         .headers
         .get(chunk.layer_index)
         .ok_or("chunk of an unknown part")?;
+    use exr::compression::Compression as C;
+    let own = matches!(
+        header.compression,
+        C::Uncompressed | C::RLE | C::ZIP1 | C::ZIP16
+    );
     // Subsampled channels are in scan-line parts only (others are refused by the header
     // checks, `exr::check_layout`).
-    let block = match &chunk.compressed_block {
-        CompressedBlock::ScanLine(block) if subsampled(header) => block,
-        _ => return Ok(UncompressedBlock::decompress_chunk(chunk, meta, false)?),
+    let layer = chunk.layer_index;
+    let block = match chunk.compressed_block {
+        CompressedBlock::ScanLine(block) if own || subsampled(header) => block,
+        compressed_block => {
+            let chunk = Chunk {
+                layer_index: layer,
+                compressed_block,
+            };
+            let block = UncompressedBlock::decompress_chunk(chunk, meta, false)?;
+            return Ok(Decoded {
+                data: block.data,
+                split: false,
+                index: block.index,
+            });
+        }
     };
     let (width, height) = (header.layer_size.0, header.layer_size.1);
     let origin = header.own_attributes.layer_position;
@@ -289,17 +337,17 @@ fn decompress(chunk: Chunk, meta: &MetaData) -> Result<UncompressedBlock, Fault>
                 .sum::<usize>()
         })
         .sum();
-    let packed = &block.compressed_pixels_le;
-    use exr::compression::Compression as C;
-    let data = if packed.len() == raw_len {
-        packed.clone() // stored raw: compressing did not make it smaller
+    if cfg!(target_endian = "big") {
+        // Samples are little-endian in the file; `convert` reads native-endian ones.
+        return Err("scan-line files are decoded on little-endian machines only".into());
+    }
+    let packed = block.compressed_pixels_le;
+    let (data, split) = if packed.len() == raw_len {
+        (packed, false) // stored raw: compressing did not make it smaller
     } else {
-        let mut bytes = match header.compression {
-            C::ZIP1 | C::ZIP16 => {
-                miniz_oxide::inflate::decompress_to_vec_zlib_with_limit(packed, raw_len)
-                    .map_err(|_| "a ZIP block does not inflate to its size")?
-            }
-            C::RLE => unpack_rle(packed, raw_len)?,
+        let bytes = match header.compression {
+            C::ZIP1 | C::ZIP16 => codec::inflate(&packed, raw_len)?,
+            C::RLE => codec::unpack_rle(&packed, raw_len)?,
             C::Uncompressed => return Err("an uncompressed block's size is wrong".into()),
             other => {
                 return Err(Fault::Exr(exr::error::Error::NotSupported(
@@ -314,17 +362,13 @@ fn decompress(chunk: Chunk, meta: &MetaData) -> Result<UncompressedBlock, Fault>
         if bytes.len() != raw_len {
             return Err("a block does not decompress to its size".into());
         }
-        unpredict(&mut bytes);
-        interleave(&bytes)
+        (bytes, true)
     };
-    if cfg!(target_endian = "big") {
-        // Samples are little-endian in the file; `scatter` reads native-endian ones.
-        return Err("subsampled channels are decoded on little-endian machines only".into());
-    }
-    Ok(UncompressedBlock {
+    Ok(Decoded {
         data,
+        split,
         index: BlockIndex {
-            layer: chunk.layer_index,
+            layer,
             pixel_position: exr::math::Vec2(0, first),
             pixel_size: exr::math::Vec2(width, rows),
             level: exr::math::Vec2(0, 0),
@@ -332,53 +376,19 @@ fn decompress(chunk: Chunk, meta: &MetaData) -> Result<UncompressedBlock, Fault>
     })
 }
 
-/// OpenEXR's run-length code: a negative count byte `-n` is followed by `n` literal bytes, a
-/// count `n >= 0` by one byte repeated `n + 1` times. At most `limit` bytes are produced.
-fn unpack_rle(mut packed: &[u8], limit: usize) -> Result<Vec<u8>, Fault> {
-    let mut out = Vec::new();
-    out.try_reserve_exact(limit)
-        .map_err(|_| "a block too large to allocate")?;
-    while let Some((&count, rest)) = packed.split_first() {
-        let count = count as i8;
-        if count < 0 {
-            let n = count.unsigned_abs() as usize;
-            let literal = rest
-                .get(..n)
-                .ok_or("an RLE block ends inside a literal run")?;
-            out.extend_from_slice(literal);
-            packed = &rest[n..];
-        } else {
-            let (&byte, rest) = rest.split_first().ok_or("an RLE block ends inside a run")?;
-            out.resize(out.len() + count as usize + 1, byte);
-            packed = rest;
-        }
-        if out.len() > limit {
-            return Err("an RLE block expands past its size".into());
+/// Samples of one type, from the two halves of a split block (each sample's even-indexed
+/// bytes in the first, its odd-indexed ones in the second; little-endian), to f32.
+fn convert_split(halves: (&[u8], &[u8]), kind: SampleType, dst: &mut [f32]) {
+    let (even, odd) = halves;
+    match kind {
+        SampleType::F32 => codec::join_words(even, odd, dst, f32::from_bits),
+        SampleType::U32 => codec::join_words(even, odd, dst, |w| w as f32),
+        SampleType::F16 => {
+            for (d, (&e, &o)) in dst.iter_mut().zip(even.iter().zip(odd)) {
+                *d = f16::from_bits(u16::from_le_bytes([e, o])).to_f32();
+            }
         }
     }
-    Ok(out)
-}
-
-/// Undoes OpenEXR's byte predictor (each byte stored as its difference to the previous one,
-/// plus 128): the inverse of [`zip_block`]'s.
-fn unpredict(bytes: &mut [u8]) {
-    for i in 1..bytes.len() {
-        bytes[i] = bytes[i - 1].wrapping_add(bytes[i]).wrapping_sub(128);
-    }
-}
-
-/// Undoes OpenEXR's byte split (the even-indexed bytes first, then the odd ones).
-fn interleave(split: &[u8]) -> Vec<u8> {
-    let half = split.len().div_ceil(2);
-    let (even, odd) = split.split_at(half);
-    let mut out = Vec::with_capacity(split.len());
-    for (i, &e) in even.iter().enumerate() {
-        out.push(e);
-        if let Some(&o) = odd.get(i) {
-            out.push(o);
-        }
-    }
-    out
 }
 
 /// Native-endian samples of one type to f32.
@@ -402,12 +412,6 @@ fn convert(bytes: &[u8], kind: SampleType, dst: &mut [f32]) {
     }
 }
 
-/// Deflate level of written blocks. Level 1 (miniz's fast path) compresses a 1280 x 720 RGB
-/// f32 frame of noisy radiance 4.3x faster than the `exr` crate's fixed level 4 (0.064 s
-/// against 0.278 s on one core) into a file 4 % larger (10.98 MB against 10.53 MB; OpenEXR's
-/// own writer: 10.85 MB): float noise leaves deflate little to find at any level.
-const ZIP_LEVEL: u8 = 1;
-
 /// Writes one scan-line part of f32 channels, `planes[i]` stored as channel `names[i]` of
 /// `header` (sorted, as OpenEXR stores them), ZIP-compressed in blocks of 16 rows, in parallel
 /// when called inside a rayon pool.
@@ -430,25 +434,30 @@ pub(super) fn encode(
                 exr::block::enumerate_ordered_header_block_indices(&meta.headers).collect();
             let compress = |&(_, index): &(usize, BlockIndex)| -> Chunk {
                 let (y0, lines) = (index.pixel_position.1, index.pixel_size.1.min(rows));
-                let mut raw = Vec::with_capacity(width * lines * 4 * planes.len());
-                for y in y0..y0 + lines {
-                    for plane in planes {
-                        for v in &plane[y * width..(y + 1) * width] {
-                            raw.extend_from_slice(&v.to_le_bytes());
-                        }
-                    }
+                let line_rows = |y: usize| planes.iter().map(move |p| &p[y * width..][..width]);
+                let block_rows = (y0..y0 + lines).flat_map(line_rows);
+                // Split as it is gathered: the raw block is never laid out.
+                let len = 4 * width * lines * planes.len();
+                let mut split = vec![0u8; len];
+                let (even, odd) = split.split_at_mut(len / 2);
+                let halves = even
+                    .chunks_exact_mut(2 * width)
+                    .zip(odd.chunks_exact_mut(2 * width));
+                for (row, (even, odd)) in block_rows.clone().zip(halves) {
+                    codec::split_words(row, even, odd);
                 }
-                let packed = zip_block(&raw);
+                let packed = codec::deflate(&split);
+                // OpenEXR stores a block raw when compressing does not make it smaller.
+                let compressed_pixels_le = if packed.len() < len {
+                    packed
+                } else {
+                    block_rows.flatten().flat_map(|v| v.to_le_bytes()).collect()
+                };
                 Chunk {
                     layer_index: 0,
                     compressed_block: CompressedBlock::ScanLine(CompressedScanLineBlock {
                         y_coordinate: y0 as i32,
-                        // OpenEXR stores a block raw when compressing does not make it smaller.
-                        compressed_pixels_le: if packed.len() < raw.len() {
-                            packed
-                        } else {
-                            raw
-                        },
+                        compressed_pixels_le,
                     }),
                 }
             };
@@ -470,27 +479,6 @@ pub(super) fn encode(
         },
     )?;
     Ok(())
-}
-
-/// OpenEXR's ZIP block: the bytes split into even and odd positions, each byte replaced by
-/// its difference to the one before plus 128, then zlib.
-fn zip_block(raw: &[u8]) -> Vec<u8> {
-    let half = raw.len().div_ceil(2);
-    let mut split = vec![0u8; raw.len()];
-    let (even, odd) = split.split_at_mut(half);
-    for (i, pair) in raw.chunks(2).enumerate() {
-        even[i] = pair[0];
-        if let Some(&b) = pair.get(1) {
-            odd[i] = b;
-        }
-    }
-    let mut previous = split.first().copied().unwrap_or(0);
-    for byte in split.iter_mut().skip(1) {
-        let current = *byte;
-        *byte = current.wrapping_sub(previous).wrapping_add(128);
-        previous = current;
-    }
-    miniz_oxide::deflate::compress_to_vec_zlib(&split, ZIP_LEVEL)
 }
 
 /// A scan-line header (ZIP, 16 rows per block, increasing line order, no name attribute) for
@@ -534,34 +522,5 @@ impl From<String> for Fault {
 impl From<exr::error::Error> for Fault {
     fn from(e: exr::error::Error) -> Self {
         Fault::Exr(e)
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// Our ZIP writer's block, inflated, unpredicted and interleaved, is the raw bytes again
-    /// (odd and even lengths).
-    #[test]
-    fn zip_blocks_decode_to_their_bytes() {
-        for len in [0usize, 1, 2, 7, 64, 1001] {
-            let raw: Vec<u8> = (0..len).map(|i| (i * 37 % 251) as u8).collect();
-            let packed = zip_block(&raw);
-            let mut bytes = miniz_oxide::inflate::decompress_to_vec_zlib(&packed).unwrap();
-            unpredict(&mut bytes);
-            assert_eq!(interleave(&bytes), raw, "length {len}");
-        }
-    }
-
-    /// OpenEXR's RLE: literal runs (negative counts) and repeats (count + 1 copies), and the
-    /// faults: a run cut short, a block longer than its size.
-    #[test]
-    fn rle_runs_unpack_and_damage_is_refused() {
-        let packed = [0xfdu8, 1, 2, 3, 2, 9];
-        assert_eq!(unpack_rle(&packed, 6).unwrap(), [1, 2, 3, 9, 9, 9]);
-        assert!(unpack_rle(&[0xfe, 1], 6).is_err());
-        assert!(unpack_rle(&[3], 6).is_err());
-        assert!(unpack_rle(&[9, 5], 6).is_err());
     }
 }

@@ -23,7 +23,7 @@ use super::chunks::{self, Offsets};
 use crate::error::{Error, Result};
 use crate::frame::{Frame, FrameBuilder, Layer};
 use crate::image::Image;
-use crate::validate::Policy;
+use crate::validate::{Policy, Summary};
 
 /// Alternative layer names accepted on reading, besides the canonical (case-insensitive) one:
 /// pbrt's `Albedo`, `N`, `Ns`, `Variance`; Mitsuba's AOV names `nn`, `sh_normal`, `dd`.
@@ -57,36 +57,46 @@ pub struct RawBundle {
 impl RawBundle {
     /// Validates and sanitises the layers into a [`Frame`]; errors name the file.
     pub fn into_frame(self, policy: Policy) -> Result<Frame> {
+        self.into_frame_known(policy, &BTreeMap::new())
+    }
+
+    /// [`RawBundle::into_frame`] with the summaries of layers as they were decoded.
+    fn into_frame_known(self, policy: Policy, known: &BTreeMap<Layer, Summary>) -> Result<Frame> {
         let path = self.path.clone();
         let mut builder = FrameBuilder::new().spp(self.spp);
         for (layer, img) in self.layers {
             builder = builder.image(layer, img);
         }
-        builder.build(policy).map_err(|e| match e {
+        builder.build_known(policy, known).map_err(|e| match e {
             Error::InvalidInput(m) => Error::InvalidInput(format!("{}: {m}", path.display())),
             other => other,
         })
     }
 }
 
-/// Reads and validates a frame bundle.
+/// Reads and validates a frame bundle. Layers whose values were found clean while they were
+/// decoded are not passed over again; the frame is the one [`RawBundle::into_frame`] builds.
 pub fn read_bundle(path: impl AsRef<Path>, policy: Policy) -> Result<Frame> {
-    read_bundle_raw(path)?.into_frame(policy)
+    let (raw, known) = parse_bundle(open(path.as_ref())?, path.as_ref())?;
+    raw.into_frame_known(policy, &known)
 }
 
 /// Reads a frame bundle without validating it (for inspection: `gdrecon info`).
 pub fn read_bundle_raw(path: impl AsRef<Path>) -> Result<RawBundle> {
-    let path = path.as_ref();
-    let file = std::fs::File::open(path).map_err(|source| Error::Io {
-        path: path.to_owned(),
-        source,
-    })?;
-    parse_bundle(BufReader::new(file), path)
+    Ok(parse_bundle(open(path.as_ref())?, path.as_ref())?.0)
 }
 
 /// Reads a frame bundle from memory without validating it.
 pub fn read_bundle_from_bytes(bytes: &[u8]) -> Result<RawBundle> {
-    parse_bundle(Cursor::new(bytes), Path::new("<memory>"))
+    Ok(parse_bundle(Cursor::new(bytes), Path::new("<memory>"))?.0)
+}
+
+fn open(path: &Path) -> Result<BufReader<std::fs::File>> {
+    let file = std::fs::File::open(path).map_err(|source| Error::Io {
+        path: path.to_owned(),
+        source,
+    })?;
+    Ok(BufReader::new(file))
 }
 
 fn exr_error(e: exr::error::Error, path: &Path) -> Error {
@@ -281,7 +291,11 @@ fn check_layout(mut reader: impl Read + Seek, path: &Path) -> Result<(MetaData, 
     Ok((meta, offsets))
 }
 
-fn parse_bundle(mut reader: impl Read + Seek + Send, path: &Path) -> Result<RawBundle> {
+/// The bundle, and a summary of each layer's values (see [`Summary`]).
+fn parse_bundle(
+    mut reader: impl Read + Seek + Send,
+    path: &Path,
+) -> Result<(RawBundle, BTreeMap<Layer, Summary>)> {
     let (meta, offsets) = check_layout(&mut reader, path)?;
     let err = |message: String| Error::Exr {
         path: path.to_owned(),
@@ -380,16 +394,18 @@ fn parse_bundle(mut reader: impl Read + Seek + Send, path: &Path) -> Result<RawB
         sources.insert(layer, names);
         ignored.extend(extra);
     }
-    blocks::decode(reader, (&meta, &offsets), &targets, &mut images).map_err(|f| fault(f, path))?;
-    Ok(RawBundle {
+    let summaries = blocks::decode(reader, (&meta, &offsets), &targets, &mut images)
+        .map_err(|f| fault(f, path))?;
+    let raw = RawBundle {
         path: path.to_owned(),
         size: (w, h),
-        layers: order.into_iter().zip(images).collect(),
+        layers: order.iter().copied().zip(images).collect(),
         sources,
         ignored,
         spp,
         warnings,
-    })
+    };
+    Ok((raw, order.into_iter().zip(summaries).collect()))
 }
 
 /// A channel found for a layer: its full name, its component (upper case), and where it is

@@ -2,6 +2,7 @@
 
 mod blocks;
 mod chunks;
+mod codec;
 pub mod exr;
 pub mod png;
 
