@@ -228,6 +228,16 @@ impl Frame {
         &self.sanitized
     }
 
+    /// The same frame with its samples per pixel set to `spp` (`None`: unknown), checked as
+    /// [`FrameBuilder::build`] checks it. The layers and the report of replaced values stay
+    /// as they are (rebuilding the frame would sanitise clean layers again and report nothing
+    /// replaced).
+    pub fn with_spp(mut self, spp: Option<f32>) -> Result<Frame> {
+        check_spp(spp)?;
+        self.spp = spp;
+        Ok(self)
+    }
+
     /// Takes the frame apart into a builder holding the same (already clean) layers, e.g. to
     /// drop or replace one.
     pub fn into_builder(self) -> FrameBuilder {
@@ -235,6 +245,16 @@ impl Frame {
             layers: self.layers,
             spp: self.spp,
         }
+    }
+}
+
+/// Refuses samples per pixel that are not a positive finite number.
+fn check_spp(spp: Option<f32>) -> Result<()> {
+    match spp {
+        Some(s) if !(s.is_finite() && s > 0.0) => Err(Error::input(format!(
+            "spp is {s}: samples per pixel must be a positive finite number (or unknown)"
+        ))),
+        _ => Ok(()),
     }
 }
 
@@ -330,13 +350,7 @@ impl FrameBuilder {
                 }
             }
         }
-        if let Some(s) = spp {
-            if !(s.is_finite() && s > 0.0) {
-                return Err(Error::input(format!(
-                    "spp is {s}: samples per pixel must be a positive finite number (or unknown)"
-                )));
-            }
-        }
+        check_spp(spp)?;
         let mut sanitized = SanitizeReport::default();
         let mut gradients = None;
         // Colour comes first in Layer::ALL: the gradients' bound is taken on the sanitised colour.

@@ -105,6 +105,51 @@ fn eval_scores_a_bundles_colour_and_refuses_a_nan_reference() {
     assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");
 }
 
+/// Values replaced while reading are reported, with and without `--spp` (which once rebuilt
+/// the frame, sanitising its clean layers again and reporting nothing replaced).
+#[test]
+fn replaced_values_are_reported_whatever_the_spp() {
+    use exr::prelude::{self as x, WritableImage};
+    let dir = tempfile::tempdir().unwrap();
+    let bundle = dir.path().join("nan.exr");
+    let (w, h) = (24, 16);
+    let channels = ["color", "dx", "dy"].into_iter().flat_map(|layer| {
+        ["R", "G", "B"].map(|c| {
+            let mut v = vec![0.25f32; w * h];
+            if layer == "color" && c == "G" {
+                (v[5], v[40]) = (f32::NAN, -1.0);
+            }
+            let name = x::Text::from(format!("{layer}.{c}").as_str());
+            x::AnyChannel::new(name, x::FlatSamples::F32(v))
+        })
+    });
+    let layer = x::Layer::new(
+        (w, h),
+        x::LayerAttributes::default(),
+        x::Encoding::FAST_LOSSLESS,
+        x::AnyChannels::sort(channels.collect()),
+    );
+    x::Image::from_layer(layer)
+        .write()
+        .to_file(&bundle)
+        .unwrap();
+    for spp in [None, Some("8")] {
+        let mut cmd = gdrecon();
+        cmd.arg("reconstruct")
+            .arg(&bundle)
+            .arg("-o")
+            .arg(dir.path().join("o.exr"));
+        if let Some(s) = spp {
+            cmd.args(["--spp", s]);
+        }
+        let said = out(&mut cmd);
+        assert!(
+            said.contains("replaced by 0: color: 1 non-finite 1 negative"),
+            "--spp {spp:?}: {said}"
+        );
+    }
+}
+
 #[test]
 fn errors_are_one_line_with_nonzero_exit() {
     let dir = tempfile::tempdir().unwrap();

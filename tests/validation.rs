@@ -78,6 +78,20 @@ fn bad_spp_is_refused() {
         base(4, 3).spp(None).build(Policy::Replace).unwrap().spp(),
         None
     );
+    // Setting it on a built frame checks it the same way and keeps what was replaced.
+    let mut color = test_image(4, 3);
+    color.as_mut_slice()[2] = f32::NAN;
+    let frame = base(4, 3)
+        .image(Layer::Color, color)
+        .build(Policy::Replace)
+        .unwrap();
+    for spp in [0.0, -4.0, f32::NAN, f32::INFINITY] {
+        let m = input_error(frame.clone().with_spp(Some(spp)));
+        assert!(m.contains("spp"), "{m}");
+    }
+    let frame = frame.with_spp(Some(8.0)).unwrap();
+    assert_eq!(frame.spp(), Some(8.0));
+    assert_eq!(frame.sanitized().layer(Layer::Color).non_finite, 1);
 }
 
 #[test]

@@ -248,7 +248,7 @@ fn usage_error(e: clap::Error) -> ExitCode {
 pub(crate) fn load_frame(path: &Path, policy: Policy, spp: Option<f32>) -> gdrecon::Result<Frame> {
     let frame = io::read_bundle(path, policy)?;
     match spp {
-        Some(s) => frame.into_builder().spp(Some(s)).build(policy),
+        Some(s) => frame.with_spp(Some(s)),
         None => Ok(frame),
     }
 }
