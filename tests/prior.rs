@@ -344,6 +344,69 @@ fn a_bundle_with_a_prior_layer_needs_no_oidn() {
     );
 }
 
+/// A plan for frames that bring their own prior (`MethodConfig::given_prior`, what the CLI
+/// plans for such a bundle) is held to the limit without OIDN's scratch: `l1 --preset prior`
+/// runs the bundle with a `prior` layer under a limit that refuses it for the bundle without
+/// one, and a plan made that way refuses a frame without the layer instead of running OIDN.
+#[test]
+fn a_plan_for_given_priors_is_held_to_less_and_refuses_frames_without_one() {
+    const MIB: u64 = 1 << 20;
+    let dir = tempfile::tempdir().unwrap();
+    let sample = root().join("examples/data/sample.exr");
+    let frame = io::read_bundle(&sample, Policy::Replace).unwrap();
+    let (w, h) = frame.size();
+    let with_prior = frame
+        .clone()
+        .into_builder()
+        .image(Layer::Prior, frame.reference().unwrap().clone())
+        .build(Policy::Replace)
+        .unwrap();
+    let bundle = dir.path().join("with-prior.exr");
+    io::write_bundle(&bundle, &with_prior).unwrap();
+    let l1 = MethodConfig::PoissonL1(PoissonL1Config::prior());
+    let computed = l1.fitted_to(w, h, 0).memory_estimate(w, h).div_ceil(MIB);
+    let given = l1.given_prior().memory_estimate(w, h).div_ceil(MIB);
+    assert!(given + 2 < computed, "{given} {computed}");
+    let limit = (given + 1).to_string();
+    let cli = |input: &Path| {
+        gdrecon()
+            .args(["reconstruct", "--method", "l1", "--preset", "prior", "-o"])
+            .arg(dir.path().join("x.exr"))
+            .arg(input)
+            .args(["--max-memory-mb", &limit])
+            .output()
+            .unwrap()
+    };
+    let ok = cli(&bundle);
+    let said = String::from_utf8_lossy(&ok.stdout);
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    assert!(said.contains("prior: the frame's 'prior' layer"), "{said}");
+    let refused = cli(&sample);
+    let why = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        !refused.status.success() && why.contains("needs about"),
+        "{why}"
+    );
+
+    let context = Context::new(ContextOptions::with_threads(Some(2))).unwrap();
+    let mut plan = Plan::new(&context, &l1.given_prior(), w, h).unwrap();
+    let (out, _) = plan.execute(&with_prior, &Progress::none()).unwrap();
+    let (same, _) = run(&with_prior, &l1);
+    assert_eq!(out.as_slice(), same.as_slice());
+    let e = plan
+        .execute(&frame, &Progress::none())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("bring their own prior") && e.contains("has none"),
+        "{e}"
+    );
+}
+
 /// Under `max_memory_mb` OIDN gets less scratch (`maxMemoryMB` 512 instead of 1024 here) and
 /// denoises in tiles: the same image, bit for bit.
 #[test]

@@ -445,10 +445,12 @@ impl MethodConfig {
         fitted
     }
 
-    /// This configuration as a frame that brings its own prior (a `prior` layer) runs it:
-    /// without Open Image Denoise's scratch, which such a frame never allocates (every path
-    /// that can compute a prior; the others unchanged).
-    pub(crate) fn given_prior(&self) -> MethodConfig {
+    /// This configuration for frames that bring their own prior (a `prior` layer): planned
+    /// without Open Image Denoise's scratch, which such frames never allocate, so that a
+    /// memory limit leaves the rest of the plan more (every path that can compute a prior; the
+    /// others, and `auto`, which sees each frame, unchanged). A plan made from it refuses a
+    /// frame without a `prior` layer where it would have run OIDN.
+    pub fn given_prior(&self) -> MethodConfig {
         let mut given = self.clone();
         match &mut given {
             MethodConfig::PoissonL2(c) => c.scratch = prior::Scratch::NONE,

@@ -270,6 +270,11 @@ fn reconstruct(args: ReconstructArgs) -> gdrecon::Result<()> {
     let t0 = Instant::now();
     let frame = context.install(|| load_frame(&args.input, policy, args.spp))?;
     let read_time = t0.elapsed();
+    // A frame with its own prior never runs OIDN: its scratch is not held against the limit.
+    let config = match frame.prior() {
+        Some(_) => config.given_prior(),
+        None => config,
+    };
     let mut plan = Plan::new(&context, &config, frame.width(), frame.height())?;
     let bar = bar::DelayedBar::new(args.quiet);
     let callback = |f: f64| bar.update(f);

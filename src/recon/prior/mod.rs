@@ -273,6 +273,14 @@ impl Prior {
             report.note("prior: the frame's 'prior' layer (given by the caller)");
             return Ok(Cow::Borrowed(given));
         }
+        if self.scratch == Scratch::NONE {
+            // Planned without OIDN's scratch (`MethodConfig::given_prior`): running OIDN now
+            // would take memory the plan was not held to.
+            return Err(crate::Error::input(
+                "the plan was made for frames that bring their own prior (a 'prior' layer), \
+                 and this frame has none",
+            ));
+        }
         self.compute(frame, report, progress).map(Cow::Borrowed)
     }
 
