@@ -5,8 +5,11 @@
 //! (in parallel when called inside a rayon pool, such as [`crate::Context::install`]; on the
 //! calling thread otherwise, so that a library call never starts threads of its own) and
 //! converts each wanted channel's samples to f32 straight into its destination plane: no
-//! intermediate copy of the image, and channels nobody asked for are never converted.
-//! Encoding does the reverse for f32 planes, compressing ZIP blocks the same way.
+//! intermediate copy of the image, and channels nobody asked for are never converted. ZIP and
+//! RLE blocks are converted from their split bytes ([`super::codec`]), and each image's values
+//! are summarised as they are converted ([`Summary`]), so that no later pass reads them again
+//! to find them clean. Encoding does the reverse for f32 planes, compressing ZIP blocks the
+//! same way.
 //!
 //! The chunk layout was checked before ([`super::chunks::check`]): every block of the level
 //! is stored exactly once. Decoding still counts the pixels each part received and refuses a
