@@ -400,7 +400,9 @@ gdr_error gdr_filter_set_progress_callback(gdr_filter *filter, gdr_progress_fn c
 // the sample count) (`GDR_ERROR_INVALID_OPERATION`), sizes that disagree
 // (`GDR_ERROR_INVALID_IMAGE`), an output partially overlapping an input (`GDR_ERROR_OVERLAP`;
 // the output may be exactly an input view, i.e. in place), a parameter out of range
-// (`GDR_ERROR_INVALID_ARGUMENT`).
+// (`GDR_ERROR_INVALID_ARGUMENT`), a plan over the context's `"max_memory_mb"`
+// (`GDR_ERROR_OUT_OF_MEMORY`). With image `"prior"` set, the plan does not count Open Image
+// Denoise's scratch memory, which it then never needs.
 gdr_error gdr_filter_commit(gdr_filter *filter);
 
 // Run the committed filter: read the input views, reconstruct, write the output view; blocks until done.

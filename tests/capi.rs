@@ -1179,6 +1179,47 @@ fn the_prior_image_and_presets_reach_the_method() {
     assert!(same_bits(&out_alone, &prior.to_interleaved()));
 }
 
+/// With image "prior" set, the commit plans for a given prior: under a memory limit between
+/// the plan's needs with and without OIDN's scratch, `l1` with the prior preset commits and
+/// runs (the Rust API's image), and the same filter without the prior image is refused.
+#[test]
+fn a_prior_image_is_planned_for_without_oidns_scratch() {
+    let frame = frame();
+    let prior = frame.reference().unwrap().clone();
+    let with_prior = frame
+        .clone()
+        .into_builder()
+        .image(Layer::Prior, prior.clone())
+        .build(gdrecon::Policy::Strict)
+        .unwrap();
+    let l1 = MethodConfig::PoissonL1(gdrecon::recon::PoissonL1Config::prior());
+    let expected = rust_output(&with_prior, &l1);
+    let mib = |b: u64| b.div_ceil(1 << 20);
+    let computed = mib(l1.fitted_to(W, H, 0).memory_estimate(W, H));
+    let given = mib(l1.given_prior().memory_estimate(W, H));
+    assert!(given + 2 < computed, "{given} {computed}");
+    let mut bufs = packed_inputs(&frame);
+    bufs.push((Layer::Prior, prior.to_interleaved()));
+    let mut out = vec![0f32; W * H * 3];
+    unsafe {
+        let mut ctx = null_mut();
+        ok(gdr_context_new(&mut ctx));
+        let limit = i32::try_from(given + 1).unwrap();
+        ok(gdr_context_set_int(ctx, c"max_memory_mb".as_ptr(), limit));
+        ok(gdr_context_commit(ctx));
+        let f = filter(ctx, "l1");
+        ok(gdr_filter_set_preset(f, c"prior".as_ptr()));
+        set_packed(f, &bufs);
+        run(f, &mut out);
+        ok(gdr_filter_unset_image(f, c"prior".as_ptr()));
+        let m = fails(gdr_filter_commit(f), GDR_ERROR_OUT_OF_MEMORY);
+        assert!(m.contains(&format!("needs about {computed} MiB")), "{m}");
+        ok(gdr_filter_release(&mut { f }));
+        ok(gdr_context_release(&mut ctx));
+    }
+    assert!(same_bits(&out, &expected));
+}
+
 #[test]
 fn the_context_takes_an_oidn_path() {
     let mut ctx = null_mut();

@@ -170,15 +170,21 @@ impl State {
                  (gdr_filter_set_float(filter, \"spp\", N)) before gdr_filter_commit",
             );
         }
+        // With a prior image set, every execution until the next commit has one: no OIDN run,
+        // so its scratch is not held against the memory limit (unsetting it dirties the filter).
+        let config = match self.inputs.contains_key(&Layer::Prior) {
+            true => self.config.given_prior(),
+            false => self.config.clone(),
+        };
         let mut note = String::new();
-        if self.planned.as_ref() != Some(&(self.config.clone(), w, h)) {
+        if self.planned.as_ref() != Some(&(config.clone(), w, h)) {
             self.plan = None;
             self.planned = None;
             self.out = Image::zeros(3, 0, 0);
-            let plan = Plan::new(pool, &self.config, w, h)?;
+            let plan = Plan::new(pool, &config, w, h)?;
             self.out = Image::try_zeros(3, w, h)?;
             self.plan = Some(plan);
-            self.planned = Some((self.config.clone(), w, h));
+            self.planned = Some((config, w, h));
             note = format!("planned method {} for {w} x {h}", self.config.method());
         }
         self.dirty = false;
@@ -554,7 +560,9 @@ pub unsafe extern "C" fn gdr_filter_set_progress_callback(
 /// the sample count) (`GDR_ERROR_INVALID_OPERATION`), sizes that disagree
 /// (`GDR_ERROR_INVALID_IMAGE`), an output partially overlapping an input (`GDR_ERROR_OVERLAP`;
 /// the output may be exactly an input view, i.e. in place), a parameter out of range
-/// (`GDR_ERROR_INVALID_ARGUMENT`).
+/// (`GDR_ERROR_INVALID_ARGUMENT`), a plan over the context's `"max_memory_mb"`
+/// (`GDR_ERROR_OUT_OF_MEMORY`). With image `"prior"` set, the plan does not count Open Image
+/// Denoise's scratch memory, which it then never needs.
 #[no_mangle]
 pub unsafe extern "C" fn gdr_filter_commit(filter: *mut gdr_filter) -> gdr_error {
     with_filter("gdr_filter_commit", filter, |f, st| {
