@@ -11,7 +11,9 @@ use std::time::{Duration, Instant};
 
 use gdrecon::capi::gdr_error::*;
 use gdrecon::capi::*;
-use gdrecon::{synth, Context, ContextOptions, Frame, Layer, Method, MethodConfig, Plan, Progress};
+use gdrecon::{
+    synth, Context, ContextOptions, Frame, Image, Layer, Method, MethodConfig, Plan, Progress,
+};
 
 const W: usize = 97;
 const H: usize = 61;
@@ -1124,10 +1126,10 @@ fn write_reference_for_c() {
     }
 }
 
-#[test]
-fn the_prior_image_and_presets_reach_the_method() {
+/// The test frame, a caller's prior for it (any RGB image: here the reference, handed over as
+/// image "prior"), and the frame with that prior as its layer.
+fn frame_and_prior() -> (Frame, Image, Frame) {
     let frame = frame();
-    // A caller's prior: any RGB image (here the reference), handed over as image "prior".
     let prior = frame.reference().unwrap().clone();
     let with_prior = frame
         .clone()
@@ -1135,6 +1137,12 @@ fn the_prior_image_and_presets_reach_the_method() {
         .image(Layer::Prior, prior.clone())
         .build(gdrecon::Policy::Strict)
         .unwrap();
+    (frame, prior, with_prior)
+}
+
+#[test]
+fn the_prior_image_and_presets_reach_the_method() {
+    let (frame, prior, with_prior) = frame_and_prior();
     let expected = rust_output(
         &with_prior,
         &MethodConfig::PoissonL1(gdrecon::recon::PoissonL1Config::prior()),
@@ -1184,14 +1192,7 @@ fn the_prior_image_and_presets_reach_the_method() {
 /// runs (the Rust API's image), and the same filter without the prior image is refused.
 #[test]
 fn a_prior_image_is_planned_for_without_oidns_scratch() {
-    let frame = frame();
-    let prior = frame.reference().unwrap().clone();
-    let with_prior = frame
-        .clone()
-        .into_builder()
-        .image(Layer::Prior, prior.clone())
-        .build(gdrecon::Policy::Strict)
-        .unwrap();
+    let (frame, prior, with_prior) = frame_and_prior();
     let l1 = MethodConfig::PoissonL1(gdrecon::recon::PoissonL1Config::prior());
     let expected = rust_output(&with_prior, &l1);
     let mib = |b: u64| b.div_ceil(1 << 20);

@@ -172,9 +172,10 @@ impl State {
         }
         // With a prior image set, every execution until the next commit has one: no OIDN run,
         // so its scratch is not held against the memory limit (unsetting it dirties the filter).
-        let config = match self.inputs.contains_key(&Layer::Prior) {
-            true => self.config.given_prior(),
-            false => self.config.clone(),
+        let config = if self.inputs.contains_key(&Layer::Prior) {
+            self.config.given_prior()
+        } else {
+            self.config.clone()
         };
         let mut note = String::new();
         if self.planned.as_ref() != Some(&(config.clone(), w, h)) {

@@ -295,10 +295,13 @@ fn decompress(chunk: Chunk, meta: &MetaData) -> Result<Decoded, Fault> {
         .get(chunk.layer_index)
         .ok_or("chunk of an unknown part")?;
     use exr::compression::Compression as C;
-    let own = matches!(
-        header.compression,
-        C::Uncompressed | C::RLE | C::ZIP1 | C::ZIP16
-    );
+    // On a big-endian machine only what the crate cannot decode is decoded here (and refused
+    // below): `convert` reads native-endian samples, and the crate's are.
+    let own = cfg!(target_endian = "little")
+        && matches!(
+            header.compression,
+            C::Uncompressed | C::RLE | C::ZIP1 | C::ZIP16
+        );
     // Subsampled channels are in scan-line parts only (others are refused by the header
     // checks, `exr::check_layout`).
     let layer = chunk.layer_index;
@@ -342,7 +345,7 @@ fn decompress(chunk: Chunk, meta: &MetaData) -> Result<Decoded, Fault> {
         .sum();
     if cfg!(target_endian = "big") {
         // Samples are little-endian in the file; `convert` reads native-endian ones.
-        return Err("scan-line files are decoded on little-endian machines only".into());
+        return Err("subsampled channels are decoded on little-endian machines only".into());
     }
     let packed = block.compressed_pixels_le;
     let (data, split) = if packed.len() == raw_len {
