@@ -270,6 +270,54 @@ fn against_oidn_reports_every_time_as_a_multiple_of_oidn() {
     assert!(summary.contains("| `prior` |"), "{summary}");
 }
 
+/// A bundle that brings its own prior: OIDN's time is still OIDN's (its runs see the frame
+/// without the layer, which the `prior` method would return as is). The layer here is the
+/// reference itself, so OIDN's row has relMSE 0 exactly when OIDN did not run.
+#[cfg(feature = "oidn")]
+#[test]
+fn against_oidn_times_oidn_on_a_bundle_with_a_prior() {
+    use gdrecon::{Layer, Policy};
+    let dir = tempfile::tempdir().unwrap();
+    let frame = gdrecon::synth::synthetic_frame(64, 48, 16.0, 3);
+    let reference = frame.reference().unwrap().clone();
+    let frame = frame
+        .into_builder()
+        .image(Layer::Prior, reference)
+        .build(Policy::Replace)
+        .unwrap();
+    let bundle = dir.path().join("synth_16spp.exr");
+    gdrecon::io::write_bundle(&bundle, &frame).unwrap();
+    let out = dir.path().join("report");
+    let output = gdrecon()
+        .arg("bench")
+        .arg(&bundle)
+        .args([
+            "--methods",
+            "l2",
+            "--against-oidn",
+            "--runs",
+            "1",
+            "--warmup",
+            "0",
+        ])
+        .arg("--out-dir")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let console = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(console.contains("without its 'prior' layer"), "{console}");
+    let csv = std::fs::read_to_string(out.join("results.csv")).unwrap();
+    let oidn: Vec<&str> = csv.lines().nth(1).unwrap().split(',').collect();
+    assert_eq!(oidn[2], "prior", "{csv}");
+    let rel_mse: f64 = oidn[13].parse().unwrap();
+    assert!(rel_mse > 1e-6, "OIDN's row is the given layer: {csv}");
+}
+
 /// `--scales` adds the scaling table (seconds per size, the exponent) and its plot.
 #[test]
 fn scales_write_the_scaling_table_and_plot() {

@@ -2,7 +2,7 @@
 
 use std::time::Instant;
 
-use gdrecon::{metrics, Context, Image, Plan, Progress};
+use gdrecon::{metrics, Context, Frame, Image, Layer, Plan, Policy, Progress};
 
 use super::frames::BenchFrame;
 use super::variant::Variant;
@@ -68,15 +68,28 @@ pub struct Schedule {
     pub runs: usize,
 }
 
-/// Plans `variant` once per frame size (not timed) and times it on every frame. With `oidn`
-/// (Open Image Denoise's variant), a plan of it runs before each run of `variant`, timed too
-/// (`Row::oidn_s`); the row's peak memory then includes OIDN's plan.
+/// How a variant's runs stand to Open Image Denoise's (`bench --against-oidn`).
+#[derive(Clone, Copy)]
+pub enum Against<'a> {
+    /// No OIDN runs.
+    Nothing,
+    /// The variant is OIDN's own.
+    Itself,
+    /// A run of OIDN's variant before each run of the variant.
+    Beside(&'a Variant),
+}
+
+/// Plans `variant` once per frame size (not timed) and times it on every frame. Beside Open
+/// Image Denoise's variant (`against`), a plan of it runs before each run of `variant`, timed
+/// too (`Row::oidn_s`); the row's peak memory then includes OIDN's plan. OIDN's runs, its own
+/// variant's included, see each frame without a `prior` layer: given one, the `prior` method
+/// returns it as is and OIDN would not be timed at all.
 ///
 /// `on_row` receives each row as soon as it is measured (for live printing).
 pub fn time_variant(
     context: &Context,
     variant: &Variant,
-    oidn: Option<&Variant>,
+    against: Against,
     frames: &[BenchFrame],
     schedule: Schedule,
     on_row: &mut dyn FnMut(&Row),
@@ -85,13 +98,29 @@ pub fn time_variant(
     let mut rows = Vec::with_capacity(frames.len());
     for size in distinct_sizes(frames) {
         let mut plan = Plan::new(context, &variant.config, size.0, size.1)?;
-        let mut oidn = oidn
-            .map(|o| Plan::new(context, &o.config, size.0, size.1))
-            .transpose()?;
+        let mut oidn = match against {
+            Against::Beside(o) => Some(Plan::new(context, &o.config, size.0, size.1)?),
+            _ => None,
+        };
         let mut out = Image::zeros(3, size.0, size.1);
         for f in frames.iter().filter(|f| f.frame.size() == size) {
-            let (times, stages, oidn_s) =
-                time_runs(&mut plan, oidn.as_mut(), f, &mut out, schedule)?;
+            let bare = match (f.frame.prior(), against) {
+                (Some(_), Against::Itself | Against::Beside(_)) => Some(
+                    f.frame
+                        .clone()
+                        .into_builder()
+                        .without(Layer::Prior)
+                        .build(Policy::Replace)?,
+                ),
+                _ => None,
+            };
+            let oidn_input = bare.as_ref().unwrap_or(&f.frame);
+            let input = match against {
+                Against::Itself => oidn_input,
+                _ => &f.frame,
+            };
+            let oidn = oidn.as_mut().map(|plan| (plan, oidn_input));
+            let (times, stages, oidn_s) = time_runs(&mut plan, oidn, input, &mut out, schedule)?;
             let rel_mse = match (f.frame.reference(), f.scale == 1.0) {
                 (Some(r), true) => Some(metrics::compare(&out, r)?.rel_mse),
                 _ => None,
@@ -117,32 +146,32 @@ fn distinct_sizes(frames: &[BenchFrame]) -> Vec<(usize, usize)> {
     sizes
 }
 
-/// Warm-up runs, then the timed runs' seconds, sorted, the median of each stage, and the
-/// median of `oidn`'s runs, one before each timed run.
+/// Warm-up runs, then the timed runs' seconds on `frame`, sorted, the median of each stage,
+/// and the median of `oidn`'s runs (a plan and its input), one before each timed run.
 fn time_runs(
     plan: &mut Plan,
-    mut oidn: Option<&mut Plan>,
-    f: &BenchFrame,
+    mut oidn: Option<(&mut Plan, &Frame)>,
+    frame: &Frame,
     out: &mut Image,
     schedule: Schedule,
 ) -> gdrecon::Result<(Vec<f64>, StageMedians, Option<f64>)> {
     for _ in 0..schedule.warmup {
-        if let Some(o) = oidn.as_deref_mut() {
-            o.execute_into(&f.frame, out, &Progress::none())?;
+        if let Some((o, input)) = oidn.as_mut() {
+            o.execute_into(input, out, &Progress::none())?;
         }
-        plan.execute_into(&f.frame, out, &Progress::none())?;
+        plan.execute_into(frame, out, &Progress::none())?;
     }
     let mut times = Vec::with_capacity(schedule.runs);
     let mut oidn_times = Vec::with_capacity(schedule.runs);
     let mut stages: Vec<(String, Vec<f64>)> = Vec::new();
     for _ in 0..schedule.runs {
-        if let Some(o) = oidn.as_deref_mut() {
+        if let Some((o, input)) = oidn.as_mut() {
             let t = Instant::now();
-            o.execute_into(&f.frame, out, &Progress::none())?;
+            o.execute_into(input, out, &Progress::none())?;
             oidn_times.push(t.elapsed().as_secs_f64());
         }
         let t = Instant::now();
-        let report = plan.execute_into(&f.frame, out, &Progress::none())?;
+        let report = plan.execute_into(frame, out, &Progress::none())?;
         times.push(t.elapsed().as_secs_f64());
         for stage in &report.stages {
             let secs = stage.time.as_secs_f64();

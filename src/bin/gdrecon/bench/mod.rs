@@ -156,6 +156,9 @@ pub fn run(args: BenchArgs) -> gdrecon::Result<()> {
     )?;
     if args.against_oidn {
         print_against_oidn(&rows);
+        if frames.iter().any(|f| f.frame.prior().is_some()) {
+            say!("(OIDN timed on each frame without its 'prior' layer; other variants given it)");
+        }
     }
     if args.baselines {
         for row in baseline::rows(&frames, context.threads())? {
@@ -254,11 +257,15 @@ fn time_all(
             .first()
             .filter(|v| against_oidn && v.label() == aggregate::OIDN);
         for v in variants {
-            let alongside = oidn.filter(|o| !std::ptr::eq(*o, v));
+            let against = match oidn {
+                Some(o) if std::ptr::eq(o, v) => measure::Against::Itself,
+                Some(o) => measure::Against::Beside(o),
+                None => measure::Against::Nothing,
+            };
             rows.extend(measure::time_variant(
                 context,
                 v,
-                alongside,
+                against,
                 set,
                 schedule,
                 &mut print_row,
