@@ -1,5 +1,7 @@
 //! `gdrecon bench --sweep --out-dir`: the report files on a tiny synthetic frame.
 
+use std::path::Path;
+
 use assert_cmd::Command;
 
 /// The CLI under test.
@@ -11,27 +13,9 @@ fn gdrecon() -> Command {
 fn sweep_writes_every_report_file() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("report");
-    let output = gdrecon()
-        .args([
-            "bench",
-            "--synthetic",
-            "48x32",
-            "--methods",
-            "l2,l1",
-            "--sweep",
-            "--runs",
-            "1",
-            "--warmup",
-            "0",
-            "--out-dir",
-        ])
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
+    bench(
+        ["--synthetic", "48x32", "--methods", "l2,l1", "--sweep"],
+        &out,
     );
     for file in [
         "results.csv",
@@ -92,6 +76,24 @@ fn sweep_writes_every_report_file() {
     assert!(svg.contains("<svg") && svg.contains("l1:published"));
 }
 
+/// `gdrecon bench ARGS --runs 1 --warmup 0 --out-dir OUT`, which must succeed; returns what it
+/// printed.
+fn bench<I: AsRef<std::ffi::OsStr>>(args: impl IntoIterator<Item = I>, out: &Path) -> String {
+    let output = gdrecon()
+        .arg("bench")
+        .args(args)
+        .args(["--runs", "1", "--warmup", "0", "--out-dir"])
+        .arg(out)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
 #[test]
 fn unknown_variant_is_named_in_the_error() {
     let output = gdrecon()
@@ -137,38 +139,16 @@ fn baselines_are_read_beside_the_bundles() {
     )
     .unwrap();
     let out = dir.path().join("report");
-    let output = gdrecon()
-        .arg("bench")
-        .arg(&bundle)
-        .args([
-            "--methods",
-            "l2",
-            "--baselines",
-            "--runs",
-            "1",
-            "--warmup",
-            "0",
-        ])
-        .arg("--out-dir")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
+    let console = bench(
+        [bundle.to_str().unwrap(), "--methods", "l2", "--baselines"],
+        &out,
     );
     let csv = std::fs::read_to_string(out.join("results.csv")).unwrap();
     let rel = |setting: &str| -> f64 {
         let line = csv
             .lines()
             .find(|l| l.split(',').nth(3) == Some(setting))
-            .unwrap_or_else(|| {
-                panic!(
-                    "no {setting} row in\n{csv}\n{}",
-                    String::from_utf8_lossy(&output.stdout)
-                )
-            });
+            .unwrap_or_else(|| panic!("no {setting} row in\n{csv}\n{console}"));
         line.split(',').nth(13).unwrap().parse().unwrap()
     };
     let base = rel("base");
@@ -199,28 +179,15 @@ fn baselines_are_read_beside_the_bundles() {
 fn against_oidn_reports_every_time_as_a_multiple_of_oidn() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("report");
-    let output = gdrecon()
-        .args([
-            "bench",
+    let console = bench(
+        [
             "--synthetic",
             "64x48",
             "--methods",
             "l2,l1",
             "--against-oidn",
-            "--runs",
-            "1",
-            "--warmup",
-            "0",
-            "--out-dir",
-        ])
-        .arg(&out)
-        .output()
-        .unwrap();
-    let console = String::from_utf8_lossy(&output.stdout);
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
+        ],
+        &out,
     );
     let csv = std::fs::read_to_string(out.join("results.csv")).unwrap();
     let methods: Vec<&str> = csv
@@ -288,27 +255,14 @@ fn against_oidn_times_oidn_on_a_bundle_with_a_prior() {
     let bundle = dir.path().join("synth_16spp.exr");
     gdrecon::io::write_bundle(&bundle, &frame).unwrap();
     let out = dir.path().join("report");
-    let output = gdrecon()
-        .arg("bench")
-        .arg(&bundle)
-        .args([
+    let console = bench(
+        [
+            bundle.to_str().unwrap(),
             "--methods",
             "l2",
             "--against-oidn",
-            "--runs",
-            "1",
-            "--warmup",
-            "0",
-        ])
-        .arg("--out-dir")
-        .arg(&out)
-        .output()
-        .unwrap();
-    let console = String::from_utf8_lossy(&output.stdout);
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
+        ],
+        &out,
     );
     assert!(console.contains("without its 'prior' layer"), "{console}");
     let csv = std::fs::read_to_string(out.join("results.csv")).unwrap();
@@ -323,28 +277,16 @@ fn against_oidn_times_oidn_on_a_bundle_with_a_prior() {
 fn scales_write_the_scaling_table_and_plot() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("report");
-    let output = gdrecon()
-        .args([
-            "bench",
+    bench(
+        [
             "--synthetic",
             "64x48",
             "--methods",
             "l2",
             "--scales",
             "0.5,1,2",
-            "--runs",
-            "1",
-            "--warmup",
-            "0",
-            "--out-dir",
-        ])
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
+        ],
+        &out,
     );
     let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
     let row = summary
