@@ -1,5 +1,7 @@
 //! `gdrecon bench --sweep --out-dir`: the report files on a tiny synthetic frame.
 
+mod common;
+
 use std::path::Path;
 
 use assert_cmd::Command;
@@ -243,15 +245,10 @@ fn against_oidn_reports_every_time_as_a_multiple_of_oidn() {
 #[cfg(feature = "oidn")]
 #[test]
 fn against_oidn_times_oidn_on_a_bundle_with_a_prior() {
-    use gdrecon::{Layer, Policy};
     let dir = tempfile::tempdir().unwrap();
     let frame = gdrecon::synth::synthetic_frame(64, 48, 16.0, 3);
     let reference = frame.reference().unwrap().clone();
-    let frame = frame
-        .into_builder()
-        .image(Layer::Prior, reference)
-        .build(Policy::Replace)
-        .unwrap();
+    let frame = common::with_prior(frame, reference);
     let bundle = dir.path().join("synth_16spp.exr");
     gdrecon::io::write_bundle(&bundle, &frame).unwrap();
     let out = dir.path().join("report");

@@ -5,6 +5,8 @@
 //! `write_reference_for_c` (ignored) writes the inputs and Rust-API outputs that the C tests in
 //! `tests/c/` compare with: `GDR_CAPI_REF_DIR=dir cargo test --test capi -- --ignored`.
 
+mod common;
+
 use std::ffi::{c_char, c_void, CStr, CString};
 use std::ptr::{null, null_mut};
 use std::time::{Duration, Instant};
@@ -1131,12 +1133,7 @@ fn write_reference_for_c() {
 fn frame_and_prior() -> (Frame, Image, Frame) {
     let frame = frame();
     let prior = frame.reference().unwrap().clone();
-    let with_prior = frame
-        .clone()
-        .into_builder()
-        .image(Layer::Prior, prior.clone())
-        .build(gdrecon::Policy::Strict)
-        .unwrap();
+    let with_prior = common::with_prior(frame.clone(), prior.clone());
     (frame, prior, with_prior)
 }
 

@@ -8,7 +8,10 @@
 //! OIDN's instruction-set differences stay out; the L1 candidates are computed here as the
 //! fixtures' were (by the library). Tolerance: 1e-4 relative (|a - b| <= 1e-4 (|b| + 1e-3)).
 //! Needs ONNX Runtime 1.31 (`bash onnx/setup.sh`).
+
 #![cfg(all(feature = "gradnet", feature = "embed-model"))]
+
+mod common;
 
 use std::path::{Path, PathBuf};
 
@@ -37,11 +40,7 @@ fn frame(stem: &str) -> Frame {
     let path = root().join(format!("tests/data/guard/{stem}.exr"));
     let frame = io::read_bundle(&path, Policy::Replace).unwrap();
     let prior = npy(root().join(format!("tests/fixtures/prior/{stem}_oidn.npy")));
-    frame
-        .into_builder()
-        .image(Layer::Prior, prior)
-        .build(Policy::Replace)
-        .unwrap()
+    common::with_prior(frame, prior)
 }
 
 fn run(frame: &Frame, config: &MethodConfig) -> gdrecon::Result<(Image, Report)> {

@@ -18,11 +18,7 @@ fn every_layer_round_trips_exactly() {
     let frame = gdrecon::synth::synthetic_frame(23, 17, 4.0, 3);
     // The synthetic frame has every layer but a denoiser's prior: add one.
     let prior = frame.reference().unwrap().clone();
-    let frame = frame
-        .into_builder()
-        .image(Layer::Prior, prior)
-        .build(Policy::Strict)
-        .unwrap();
+    let frame = with_prior(frame, prior);
     let dir = tmp();
     let path = dir.path().join("bundle.exr");
     io::write_bundle(&path, &frame).unwrap();

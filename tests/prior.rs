@@ -6,7 +6,10 @@
 //! Needs Open Image Denoise 2 (found by the library's discovery: `bash onnx/setup.sh` installs
 //! `pyoidn`, which carries it). Tolerance of the parity: OIDN's CPU kernels differ by
 //! instruction set, so outputs agree to 1e-3 relative (|a - b| <= 1e-3 (|b| + 1e-2)), not bits.
+
 #![cfg(feature = "oidn")]
+
+mod common;
 
 use std::path::{Path, PathBuf};
 
@@ -90,12 +93,7 @@ fn a_given_prior_is_used_as_is() {
     // Any image will do as the caller's prior: here the reference, halved.
     let mut given = frame.reference().unwrap().clone();
     given.as_mut_slice().iter_mut().for_each(|v| *v *= 0.5);
-    let with_prior = frame
-        .clone()
-        .into_builder()
-        .image(Layer::Prior, given.clone())
-        .build(Policy::Replace)
-        .unwrap();
+    let with_prior = common::with_prior(frame.clone(), given.clone());
     let (out, report) = run(&with_prior, &MethodConfig::default_for(Method::Prior));
     assert_eq!(out.as_slice(), given.as_slice());
     assert!(report
@@ -311,11 +309,7 @@ fn a_bundle_with_a_prior_layer_needs_no_oidn() {
     let dir = tempfile::tempdir().unwrap();
     let frame = io::read_bundle(root().join("examples/data/sample.exr"), Policy::Replace).unwrap();
     let prior = frame.reference().unwrap().clone();
-    let frame = frame
-        .into_builder()
-        .image(Layer::Prior, prior)
-        .build(Policy::Replace)
-        .unwrap();
+    let frame = common::with_prior(frame, prior);
     let bundle = dir.path().join("with-prior.exr");
     io::write_bundle(&bundle, &frame).unwrap();
     let back = io::read_bundle(&bundle, Policy::Replace).unwrap();
@@ -355,12 +349,7 @@ fn a_plan_for_given_priors_is_held_to_less_and_refuses_frames_without_one() {
     let sample = root().join("examples/data/sample.exr");
     let frame = io::read_bundle(&sample, Policy::Replace).unwrap();
     let (w, h) = frame.size();
-    let with_prior = frame
-        .clone()
-        .into_builder()
-        .image(Layer::Prior, frame.reference().unwrap().clone())
-        .build(Policy::Replace)
-        .unwrap();
+    let with_prior = common::with_prior(frame.clone(), frame.reference().unwrap().clone());
     let bundle = dir.path().join("with-prior.exr");
     io::write_bundle(&bundle, &with_prior).unwrap();
     let l1 = MethodConfig::PoissonL1(PoissonL1Config::prior());
@@ -457,12 +446,7 @@ fn a_frame_with_its_own_prior_is_held_to_the_combiner_without_oidn() {
     let auto = MethodConfig::Auto(AutoConfig::default());
     let mut plan = Plan::new(&context, &auto, w, h).unwrap();
     let frame = gdrecon::synth::synthetic_frame(w, h, 16.0, 7);
-    let given = frame
-        .clone()
-        .into_builder()
-        .image(Layer::Prior, frame.color().clone())
-        .build(Policy::Replace)
-        .unwrap();
+    let given = common::with_prior(frame.clone(), frame.color().clone());
     let (out, report) = plan.execute(&given, &Progress::none()).unwrap();
     assert!(out.all_finite());
     assert_eq!(report.method, "auto -> combiner", "{:?}", report.notes);

@@ -221,6 +221,16 @@ pub fn frame(color: Image, dx: Image, dy: Image) -> Frame {
         .unwrap()
 }
 
+/// `frame` with `prior` as its `prior` layer, as a renderer that ran its own denoiser hands
+/// it over (the frame's layers are clean already: nothing is replaced).
+pub fn with_prior(frame: Frame, prior: Image) -> Frame {
+    frame
+        .into_builder()
+        .image(Layer::Prior, prior)
+        .build(Policy::Replace)
+        .unwrap()
+}
+
 /// A noisy frame: base = image + noise, gradients = exact + smaller noise.
 pub fn noisy_frame(w: usize, h: usize, seed: u64) -> (Frame, Image) {
     let clean = test_image(w, h);
