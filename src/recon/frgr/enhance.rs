@@ -45,12 +45,68 @@ pub(crate) struct EnhanceWeights {
 const T: f32 = 0.09;
 const EPS: f32 = 0.01;
 
-fn l1_diff(img: &Image, i: usize, j: usize) -> f32 {
+/// `out[x] = sum_c |f_c[at + x + step] - f_c[at + x]|` for `x < out.len()`: the L1 difference
+/// of a feature across the edges of a row (`step` 1: horizontal, the width: vertical), its
+/// channels summed in order from -0.0, as `Iterator::sum` sums them.
+fn edge_l1(img: &Image, at: usize, step: usize, out: &mut [f32]) {
     let n = img.width() * img.height();
     let s = img.as_slice();
-    (0..img.channels())
-        .map(|c| (s[c * n + j] - s[c * n + i]).abs())
-        .sum()
+    let len = out.len();
+    out.fill(-0.0);
+    for c in 0..img.channels() {
+        let (lo, hi) = (&s[c * n + at..][..len], &s[c * n + at + step..][..len]);
+        for ((o, &a), &b) in out.iter_mut().zip(lo).zip(hi) {
+            *o += (b - a).abs();
+        }
+    }
+}
+
+/// The fidelity weights `m = (g / t + 1 / g)^2`, `g = |d_R| + |d_G| + |d_B| + 0.01`, of the
+/// `out.len()` edges of a gradient image's row starting at `at`.
+fn fidelity_row(g: &Image, at: usize, out: &mut [f32]) {
+    let n = g.width() * g.height();
+    let s = g.as_slice();
+    let len = out.len();
+    let (r, gr, b) = (
+        &s[at..][..len],
+        &s[n + at..][..len],
+        &s[2 * n + at..][..len],
+    );
+    for (x, o) in out.iter_mut().enumerate() {
+        let g = r[x].abs() + gr[x].abs() + b[x].abs() + EPS;
+        let m = g / T + 1.0 / g;
+        *o = m * m;
+    }
+}
+
+/// The smoothness weights `lambda / (d + 0.01)^2` of a row's `out.len()` edges, `d` the
+/// albedo's L1 difference across the edge plus the normal's ([`edge_l1`]), whichever the
+/// frame has (at least one); `scratch` holds twice the row.
+fn smoothness_row(
+    features: [Option<&Image>; 2],
+    (at, step): (usize, usize),
+    lambda: f32,
+    scratch: &mut [f32],
+    out: &mut [f32],
+) {
+    let len = out.len();
+    let (d, e) = scratch.split_at_mut(len);
+    let e = &mut e[..len];
+    let mut first = true;
+    for f in features.into_iter().flatten() {
+        if first {
+            edge_l1(f, at, step, d);
+            first = false;
+        } else {
+            edge_l1(f, at, step, e);
+            for (d, &e) in d.iter_mut().zip(&*e) {
+                *d += e;
+            }
+        }
+    }
+    for (o, &d) in out.iter_mut().zip(&*d) {
+        *o = lambda / ((d + EPS) * (d + EPS));
+    }
 }
 
 impl EnhanceWeights {
@@ -64,20 +120,6 @@ impl EnhanceWeights {
     ) -> Result<Self> {
         let (w, h) = dx.size();
         let n = w * h;
-        let fid = |g: &Image, i: usize| {
-            let s = g.as_slice();
-            let g = s[i].abs() + s[n + i].abs() + s[2 * n + i].abs() + EPS;
-            let m = g / T + 1.0 / g;
-            m * m
-        };
-        let smooth = |i: usize, j: usize| {
-            if albedo.is_none() && normal.is_none() {
-                return 0.0;
-            }
-            let d =
-                albedo.map_or(0.0, |a| l1_diff(a, i, j)) + normal.map_or(0.0, |f| l1_diff(f, i, j));
-            lambda / ((d + EPS) * (d + EPS))
-        };
         let mut wts = EnhanceWeights {
             w,
             h,
@@ -86,21 +128,29 @@ impl EnhanceWeights {
             sx: try_zeroed_vec(n)?,
             sy: try_zeroed_vec(n)?,
         };
+        let features = [albedo, normal];
+        let smooth = albedo.is_some() || normal.is_some();
+        // Row by row over slices, so that the weights vectorise (they are the per-edge
+        // formulas above, the same values): the last column has no horizontal edge and the
+        // last row no vertical one (their weights stay 0), and without features the
+        // smoothness weights are 0.
         wts.mx
             .par_chunks_mut(w)
             .zip(wts.sx.par_chunks_mut(w))
             .zip(wts.my.par_chunks_mut(w).zip(wts.sy.par_chunks_mut(w)))
             .enumerate()
             .for_each(|(y, ((mx, sx), (my, sy)))| {
-                for x in 0..w {
-                    let i = y * w + x;
-                    if x + 1 < w {
-                        mx[x] = fid(dx, i);
-                        sx[x] = smooth(i, i + 1);
-                    }
-                    if y + 1 < h {
-                        my[x] = fid(dy, i);
-                        sy[x] = smooth(i, i + w);
+                let at = y * w;
+                let mut scratch = vec![0.0f32; 2 * w];
+                let across = w - 1;
+                fidelity_row(dx, at, &mut mx[..across]);
+                if smooth {
+                    smoothness_row(features, (at, 1), lambda, &mut scratch, &mut sx[..across]);
+                }
+                if y + 1 < h {
+                    fidelity_row(dy, at, my);
+                    if smooth {
+                        smoothness_row(features, (at, w), lambda, &mut scratch, sy);
                     }
                 }
             });
@@ -799,6 +849,85 @@ mod tests {
         Image::from_fn(3, w, h, |(c, x, y)| {
             0.1 * x as f32 + 0.05 * y as f32 + 0.2 * c as f32
         })
+    }
+
+    /// The weights edge by edge, as the module's formulas state them (the form before the
+    /// row kernels).
+    fn literal_weights(
+        dx: &Image,
+        dy: &Image,
+        features: [Option<&Image>; 2],
+        lambda: f32,
+    ) -> [Vec<f32>; 4] {
+        let (w, h) = dx.size();
+        let n = w * h;
+        let fid = |g: &Image, i: usize| {
+            let s = g.as_slice();
+            let g = s[i].abs() + s[n + i].abs() + s[2 * n + i].abs() + EPS;
+            let m = g / T + 1.0 / g;
+            m * m
+        };
+        let l1 = |img: &Image, i: usize, j: usize| -> f32 {
+            let s = img.as_slice();
+            (0..img.channels())
+                .map(|c| (s[c * n + j] - s[c * n + i]).abs())
+                .sum()
+        };
+        let smooth = |i: usize, j: usize| {
+            if features.iter().all(Option::is_none) {
+                return 0.0;
+            }
+            let [a, f] = features;
+            let d = a.map_or(0.0, |a| l1(a, i, j)) + f.map_or(0.0, |f| l1(f, i, j));
+            lambda / ((d + EPS) * (d + EPS))
+        };
+        let mut out = [(); 4].map(|_| vec![0.0f32; n]);
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                if x + 1 < w {
+                    out[0][i] = fid(dx, i);
+                    out[2][i] = smooth(i, i + 1);
+                }
+                if y + 1 < h {
+                    out[1][i] = fid(dy, i);
+                    out[3][i] = smooth(i, i + w);
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn row_weights_equal_the_per_edge_formulas_bit_for_bit() {
+        for (w, h) in [(1, 1), (1, 5), (6, 1), (9, 7), (37, 4)] {
+            let wave = |k: usize| {
+                move |(c, x, y): (usize, usize, usize)| {
+                    (((x * 7 + y * 3 + c * 5 + k) % 11) as f32 - 5.0) * 0.037
+                }
+            };
+            let (dx, dy) = (
+                Image::from_fn(3, w, h, wave(1)),
+                Image::from_fn(3, w, h, wave(2)),
+            );
+            let (alb, nrm) = (
+                Image::from_fn(3, w, h, wave(3)),
+                Image::from_fn(3, w, h, wave(4)),
+            );
+            for features in [
+                [None, None],
+                [Some(&alb), None],
+                [None, Some(&nrm)],
+                [Some(&alb), Some(&nrm)],
+            ] {
+                let got = EnhanceWeights::new(&dx, &dy, features[0], features[1], 0.7).unwrap();
+                let want = literal_weights(&dx, &dy, features, 0.7);
+                for (k, got) in [&got.mx, &got.my, &got.sx, &got.sy].into_iter().enumerate() {
+                    let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                    assert_eq!(bits(got), bits(&want[k]), "{w} x {h}, weight {k}");
+                }
+            }
+        }
     }
 
     #[test]

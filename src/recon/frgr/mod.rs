@@ -470,10 +470,40 @@ fn scaled(img: &Image, s: f32) -> Result<Cow<'_, Image>> {
 
 /// `dst = src * s`, in place of a copy.
 fn copy_scaled(dst: &mut Image, src: &Image, s: f32) {
-    dst.as_mut_slice().copy_from_slice(src.as_slice());
-    if s != 1.0 {
-        dst.as_mut_slice().iter_mut().for_each(|v| *v *= s);
-    }
+    copy_scaled_slice(dst.as_mut_slice(), src.as_slice(), s);
+}
+
+/// `dst = src * s` (a copy when `s` is 1), in parallel chunks.
+fn copy_scaled_slice(dst: &mut [f32], src: &[f32], s: f32) {
+    dst.par_chunks_mut(CHUNK)
+        .zip(src.par_chunks(CHUNK))
+        .for_each(|(dst, src)| {
+            dst.copy_from_slice(src);
+            if s != 1.0 {
+                dst.iter_mut().for_each(|v| *v *= s);
+            }
+        });
+}
+
+/// Values per parallel task of the whole-frame passes here.
+const CHUNK: usize = 1 << 16;
+
+/// The largest magnitude in `img` (0 when empty), NaN passed over as `f32::max` passes it.
+/// Taken on the values' bits: for magnitudes the order of the bits is the order of the
+/// values, and an integer maximum vectorises where `f32::max`'s NaN rule does not (at
+/// 1280 x 720 the three images' pass took 11 ms).
+fn peak_magnitude(img: &Image) -> f32 {
+    const INF: u32 = 0x7f80_0000;
+    img.as_slice()
+        .par_chunks(CHUNK)
+        .map(|chunk| {
+            chunk.iter().fold(0u32, |m, v| {
+                let bits = v.to_bits() & !(1 << 31);
+                m.max(if bits > INF { 0 } else { bits })
+            })
+        })
+        .max()
+        .map_or(0.0, f32::from_bits)
 }
 
 /// The buffers of one resolution level.
@@ -554,11 +584,9 @@ impl Frgr {
             let (pw, ph) = guide.size();
             let mut j = Image::try_zeros(3 + 3 * features.len(), pw, ph)?;
             let (head, tail) = j.as_mut_slice().split_at_mut(guide.as_slice().len());
-            head.copy_from_slice(guide.as_slice());
+            copy_scaled_slice(head, guide.as_slice(), 1.0);
             for (dst, f) in tail.chunks_mut(3 * pw * ph).zip(&features) {
-                for (d, &v) in dst.iter_mut().zip(f.as_slice()) {
-                    *d = v * 0.1;
-                }
+                copy_scaled_slice(dst, f.as_slice(), 0.1);
             }
             let fit = report.time(&format!("glu (level {depth})"), || {
                 glu::Glu::new_or_stop(&j, progress)
@@ -689,12 +717,7 @@ impl Reconstructor for Frgr {
         // the result scaled back, so that nothing overflows. Real frames are untouched.
         let peak = [frame.color(), frame.dx(), frame.dy()]
             .iter()
-            .map(|img| {
-                img.as_slice()
-                    .par_iter()
-                    .fold(|| 0.0f32, |m, v| m.max(v.abs()))
-                    .reduce(|| 0.0, f32::max)
-            })
+            .map(|img| peak_magnitude(img))
             .fold(0.0f32, f32::max);
         let scale = if peak > LIMIT { LIMIT / peak } else { 1.0 };
         if scale != 1.0 {
@@ -810,9 +833,53 @@ impl Reconstructor for Frgr {
             converged: converged_mask(frame)?,
         };
         let (filtered, _variance) = self.run_level(&inputs, spp, 0, report, progress)?;
-        for (o, &v) in out.as_mut_slice().iter_mut().zip(filtered.as_slice()) {
-            *o = v / scale;
-        }
+        out.as_mut_slice()
+            .par_chunks_mut(CHUNK)
+            .zip(filtered.as_slice().par_chunks(CHUNK))
+            .for_each(|(out, filtered)| {
+                for (o, &v) in out.iter_mut().zip(filtered) {
+                    *o = v / scale;
+                }
+            });
         progress.update(1.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn peak_magnitude_is_the_largest_magnitude_passing_over_nan() {
+        let literal = |v: &[f32]| v.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let special = [
+            0.0,
+            -0.0,
+            1.5,
+            -2.5,
+            f32::MIN_POSITIVE,
+            -1e-45,
+            f32::MAX,
+            f32::MIN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            -f32::NAN,
+            f32::from_bits(0x7fc0_0001),
+        ];
+        // Every pair and triple of the special values, at places in and across chunks.
+        for (a, &x) in special.iter().enumerate() {
+            for &y in &special[a..] {
+                for &z in &special {
+                    let mut v = vec![0.25f32; 3 * CHUNK + 17];
+                    (v[3], v[CHUNK + 1], v[3 * CHUNK + 16]) = (x, y, z);
+                    let mut img = Image::zeros(1, v.len(), 1);
+                    img.as_mut_slice().copy_from_slice(&v);
+                    let (got, want) = (peak_magnitude(&img), literal(&v));
+                    assert_eq!(got.to_bits(), want.to_bits(), "{x} {y} {z}");
+                }
+            }
+        }
+        assert_eq!(peak_magnitude(&Image::zeros(3, 0, 0)), 0.0);
     }
 }

@@ -18,7 +18,11 @@
 //! summed apart and added to the image at the end. Each channel is done alone (the channels
 //! share `H` and are independent), so that the planes a product touches (two terms of the
 //! recurrence, their sum, the weights) stay in the last-level cache at 1280 x 720; its rows run
-//! in parallel, each row's values computed the same way for any thread count.
+//! in parallel, each row's values computed the same way for any thread count. A product reads
+//! five planes and writes two for about ten operations a pixel, so memory is its cost: past the
+//! first, the terms go two to a sweep over the rows (`Operator::two_terms`), the second term's
+//! row following the first's one row behind, while the rows it reads are in cache (the same
+//! values, tested bit for bit).
 
 use rayon::prelude::*;
 
@@ -126,9 +130,17 @@ pub(super) fn descend(
         // v_1 = T v_0 into vb, and sum = s (c_0 v_0 + c_1 v_1); then each v_k into the older
         // of the two, and sum += s c_k v_k; at the end x += sum.
         let (mut older, mut newer) = (&mut *va, &mut *vb);
-        for k in 1..coefficients.len() {
+        let mut k = 1;
+        while k < coefficients.len() {
             if stop.stopped() {
                 return false;
+            }
+            // Past the first term, two terms at a time while two are left: one sweep over
+            // memory instead of two.
+            if k >= 2 && k + 1 < coefficients.len() {
+                op.two_terms(older, newer, sum, alpha, [coef(k), coef(k + 1)]);
+                k += 2;
+                continue;
             }
             let (ck, first) = (coef(k), (k == 1).then(|| coef(0)));
             // k == 1: `older` holds v_0 (the term multiplied), `newer` receives v_1.
@@ -149,6 +161,7 @@ pub(super) fn descend(
             if k > 1 {
                 std::mem::swap(&mut older, &mut newer);
             }
+            k += 1;
         }
         x.par_chunks_mut(ROWS * w)
             .zip(sum.par_chunks(ROWS * w))
@@ -257,7 +270,149 @@ struct Operator<'a> {
     c: usize,
 }
 
+/// Rows per parallel task of [`Operator::two_terms`]: its first and last rows take a second,
+/// shorter pass.
+const BAND: usize = 32;
+
+/// One band of rows of `v_{k-1}` for [`Operator::two_terms`]: its first and last rows (read
+/// only while the bands run: the bands beside read them), the rows between (overwritten by
+/// `v_{k+1}`), and the neighbouring bands' last and first rows.
+struct Band<'a> {
+    /// The band's first row and its number of rows.
+    start: usize,
+    rows: usize,
+    above: Option<&'a [f32]>,
+    first: &'a [f32],
+    inner: &'a mut [f32],
+    last: &'a [f32],
+    below: Option<&'a [f32]>,
+}
+
+impl Band<'_> {
+    /// Row `y` of `v_{k-1}`, `y` in the band or next to it.
+    fn row(&self, y: usize, w: usize) -> &[f32] {
+        let end = self.start + self.rows;
+        if y + 1 == self.start {
+            self.above.expect("a band above")
+        } else if y == self.start {
+            self.first
+        } else if y + 1 == end {
+            self.last
+        } else if y == end {
+            self.below.expect("a band below")
+        } else {
+            &self.inner[(y - self.start - 1) * w..][..w]
+        }
+    }
+}
+
 impl Operator<'_> {
+    /// The rows above, at and below `y` of a plane, and the vertical edges' `a` above and
+    /// below, as [`product_row`] takes them (at the image's first and last rows, the row itself
+    /// and the zero `a` of the last row's missing edges).
+    fn neighbours<'v>(
+        &self,
+        y: usize,
+        row: impl Fn(usize) -> &'v [f32],
+    ) -> ([&'v [f32]; 3], [&[f32]; 2])
+    where
+        Self: 'v,
+    {
+        let s = self.sweeper;
+        let (w, h) = (s.w, s.h);
+        let mid = row(y);
+        let (up, a_up) = if y > 0 {
+            (row(y - 1), &s.ay[(y - 1) * w..y * w])
+        } else {
+            (mid, &s.ay[(h - 1) * w..h * w])
+        };
+        let down = if y + 1 < h { row(y + 1) } else { mid };
+        ([up, mid, down], [a_up, &s.ay[y * w..(y + 1) * w]])
+    }
+
+    /// Terms `k` and `k + 1` of the recurrence (`k >= 2`) in one sweep: `older` holds
+    /// `v_{k-2}` and becomes `v_k`, `newer` holds `v_{k-1}` and becomes `v_{k+1}`, and `sum +=
+    /// coefs[0] v_k` then `+= coefs[1] v_{k+1}`: per row the values and the order of two calls
+    /// of [`Operator::product_row`], but row `y - 1` of `v_{k+1}` follows row `y` of `v_k`
+    /// while the rows it reads are still in cache (the product reads five planes and writes
+    /// two: memory, not arithmetic, is its cost). Bands of [`BAND`] rows run in parallel;
+    /// `v_{k+1}` on a band's first and last rows needs `v_k` from the bands beside, and it
+    /// would overwrite rows of `v_{k-1}` they read, so those rows follow once every band is
+    /// done.
+    fn two_terms(
+        &self,
+        older: &mut [f32],
+        newer: &mut [f32],
+        sum: &mut [f32],
+        alpha: f32,
+        coefs: [f32; 2],
+    ) {
+        let s = self.sweeper;
+        let (w, h) = (s.w, s.h);
+        let ax = |y: usize| &s.ax[y * w..(y + 1) * w];
+        // `newer` cut into bands: first and last rows shared, the rows between owned.
+        let mut bands: Vec<Band> = Vec::with_capacity(h.div_ceil(BAND));
+        let mut rest = &mut *newer;
+        for start in (0..h).step_by(BAND) {
+            let rows = BAND.min(h - start);
+            let (band, tail) = std::mem::take(&mut rest).split_at_mut(rows * w);
+            rest = tail;
+            let (first, band) = band.split_at_mut(w);
+            let (inner, last): (&mut [f32], &[f32]) = if rows == 1 {
+                (&mut [], &*first)
+            } else {
+                let (inner, last) = band.split_at_mut((rows - 2) * w);
+                (inner, last)
+            };
+            bands.push(Band {
+                start,
+                rows,
+                above: None,
+                first,
+                inner,
+                last,
+                below: None,
+            });
+        }
+        for i in 1..bands.len() {
+            (bands[i].above, bands[i - 1].below) = (Some(bands[i - 1].last), Some(bands[i].first));
+        }
+        bands
+            .into_par_iter()
+            .zip(older.par_chunks_mut(BAND * w))
+            .zip(sum.par_chunks_mut(BAND * w))
+            .for_each(|((band, older), sum)| {
+                let start = band.start;
+                for t in 0..band.rows {
+                    let y = start + t;
+                    // v_k at row y, over v_{k-2}.
+                    let (v, [a_up, a_down]) = self.neighbours(y, |r| band.row(r, w));
+                    let (out, su) = (&mut older[t * w..][..w], &mut sum[t * w..][..w]);
+                    product_row(v, [ax(y), a_up, a_down], out, su, alpha, coefs[0], None);
+                    // v_{k+1} at row y - 1 (inside the band), over v_{k-1}.
+                    if t >= 2 {
+                        let older = &*older;
+                        let (v, [a_up, a_down]) =
+                            self.neighbours(y - 1, |r| &older[(r - start) * w..][..w]);
+                        let out = &mut band.inner[(t - 2) * w..][..w];
+                        let su = &mut sum[(t - 1) * w..][..w];
+                        product_row(v, [ax(y - 1), a_up, a_down], out, su, alpha, coefs[1], None);
+                    }
+                }
+            });
+        // v_{k+1} on each band's first and last rows, from v_k now complete.
+        let older = &*older;
+        newer
+            .par_chunks_mut(w)
+            .zip(sum.par_chunks_mut(w))
+            .enumerate()
+            .filter(|&(y, _)| y % BAND == 0 || y % BAND == BAND - 1 || y + 1 == h)
+            .for_each(|(y, (out, su))| {
+                let (v, [a_up, a_down]) = self.neighbours(y, |r| &older[r * w..][..w]);
+                product_row(v, [ax(y), a_up, a_down], out, su, alpha, coefs[1], None);
+            });
+    }
+
     /// Row `y` of one term of the recurrence from `v` (= `v_k`, a channel plane): see
     /// [`product_row`]; the missing edges of the image's first and last rows and columns have
     /// `a = 0` in the sweeper's planes, but for the row above the first, read as `zeros`.
@@ -369,6 +524,66 @@ mod tests {
                         "{steps} steps, z_max {z_max}, z {z}: {err:e}"
                     );
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn two_terms_in_one_sweep_equal_two_sweeps_bit_for_bit() {
+        use crate::image::Image;
+        // Heights around the band's (one and two rows left over, a band of one row, bands
+        // of the whole image), widths of one pixel and odd ones.
+        for (w, h) in [
+            (1, 1),
+            (5, 2),
+            (3, 3),
+            (17, 31),
+            (4, 32),
+            (9, 33),
+            (6, 34),
+            (5, 65),
+            (1, 70),
+        ] {
+            let wave = |k: usize| {
+                move |(c, x, y): (usize, usize, usize)| {
+                    (((x * 7 + y * 3 + c * 5 + k) % 11) as f32 - 5.0) * 0.037
+                }
+            };
+            let (dx, dy) = (
+                Image::from_fn(3, w, h, wave(1)),
+                Image::from_fn(3, w, h, wave(2)),
+            );
+            let albedo = Image::from_fn(3, w, h, wave(3));
+            let wt = super::super::EnhanceWeights::new(&dx, &dy, Some(&albedo), None, 0.7).unwrap();
+            let sweeper = Sweeper::new(dx.as_slice(), dy.as_slice(), &wt).unwrap();
+            let n = w * h;
+            let plane = |k: usize| Image::from_fn(1, w, h, wave(k)).as_slice().to_vec();
+            let (alpha, coefs) = (0.37f32, [0.61f32, -0.23]);
+            for c in 0..3 {
+                let op = Operator {
+                    sweeper: &sweeper,
+                    c,
+                };
+                let (mut older, mut newer, mut sum) = (plane(4), plane(5), plane(6));
+                // Two sweeps: v_k over v_{k-2}, then v_{k+1} over v_{k-1}.
+                let (mut p, mut q, mut su) = (older.clone(), newer.clone(), sum.clone());
+                for (k, coef) in coefs.into_iter().enumerate() {
+                    let (cur, out) = if k == 0 {
+                        (q.clone(), &mut p)
+                    } else {
+                        (p.clone(), &mut q)
+                    };
+                    for y in 0..h {
+                        let (o, s) = (&mut out[y * w..][..w], &mut su[y * w..][..w]);
+                        op.product_row(&cur, y, o, s, alpha, coef, None);
+                    }
+                }
+                op.two_terms(&mut older, &mut newer, &mut sum, alpha, coefs);
+                let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&older), bits(&p), "{w} x {h}, v_k");
+                assert_eq!(bits(&newer), bits(&q), "{w} x {h}, v_k+1");
+                assert_eq!(bits(&sum), bits(&su), "{w} x {h}, sum");
+                assert_eq!(older.len(), n);
             }
         }
     }
