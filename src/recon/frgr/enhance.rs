@@ -20,9 +20,10 @@
 //! By default the steps after the last revert are not taken one by one: once the step is below
 //! Gershgorin's stability bound no revert can follow, and the remaining steps are one
 //! polynomial of the energy's Hessian, evaluated as a Chebyshev series in a quarter of the
-//! products or fewer ([`chebyshev`]; the image within 1e-5 of exact arithmetic, as the steps
-//! are). Where the bound does not hold (the bound exceeds the step's limit), every step is
-//! taken, as before.
+//! products or fewer ([`chebyshev`]; the series truncated at 1e-4 of its largest gain, the
+//! image within 2.5e-4 of its peak of the steps' own on every validation frame and the 720p
+//! demo frame). Where the bound does not hold (the bound exceeds the step's limit), every step
+//! is taken, as before.
 
 use rayon::prelude::*;
 
@@ -1189,8 +1190,9 @@ mod tests {
     fn the_polynomial_gives_the_steps_image_within_its_tolerance() {
         // Sizes with one row, one and two columns, odd sizes, features on; 250 (the default)
         // and 1000 (the release's) iterations. The steps' image is the literal oracle's; the
-        // polynomial's is within 1e-4 of the largest change the steps make (seen: 1e-6 to
-        // 2.1e-5; f32 rounding of either, and the series' truncation).
+        // polynomial's is within 4e-3 of the largest change the steps make (seen with the
+        // series truncated at 1e-4: 3.1e-4 to 8.7e-4 at 250 steps, 6.5e-4 to 2.2e-3 at 1000;
+        // at 1e-7, 1e-6 to 2.1e-5, f32 rounding).
         for (w, h) in [(37, 29), (64, 90), (1, 40), (2, 7), (40, 1)] {
             for iters in [250, 1000] {
                 let (noisy, dx, dy, wt) = problem(w, h);
@@ -1217,14 +1219,14 @@ mod tests {
                     "{w} x {h}: the steps change the image ({change})"
                 );
                 assert!(
-                    err <= 1e-4 * change,
+                    err <= 4e-3 * change,
                     "{w} x {h}, {iters}: {err:e} of {change:e}"
                 );
                 // Against the same steps in exact arithmetic (f64) from the same start (the last
                 // revert's): the f32 steps within 1e-5 of the image's largest value (seen: 3.2e-7
-                // to 3.9e-6), the polynomial within 2e-5 (seen: 3.9e-7 to 1.3e-5, the largest on
-                // 2 x 7 with 1000 steps: its rounding, scaled by the coefficients' sum, exceeds
-                // the steps', which each step damps; no smaller tolerance lowers it).
+                // to 3.9e-6), the polynomial within 2e-3 (seen: 9.8e-5 to 2.3e-4 at 250 steps,
+                // 3.3e-4 to 1.04e-3 at 1000, the largest on 2 x 7: the series' truncation; at a
+                // truncation of 1e-7, 3.9e-7 to 1.3e-5, its rounding).
                 let sweeper = Sweeper::new(dx.as_slice(), dy.as_slice(), &wt).unwrap();
                 let step = 1e-4 * 0.5f32.powi(outcome.reverts as i32);
                 let exact = descend_f64(noisy.as_slice(), &sweeper, step, steps);
@@ -1237,7 +1239,7 @@ mod tests {
                 let peak = exact.iter().fold(0.0f64, |m, v| m.max(v.abs()));
                 let (poly, literal) = (off(got.as_slice()), off(&want));
                 assert!(
-                    poly <= 2e-5 * peak,
+                    poly <= 2e-3 * peak,
                     "{w} x {h}, {iters}: {poly:e} of {peak}"
                 );
                 assert!(
