@@ -159,6 +159,15 @@ impl EnhanceWeights {
     }
 }
 
+/// A deterministic image of small values of both signs, the tests' gradients, features and
+/// planes (`k` shifts the pattern).
+#[cfg(test)]
+fn wave(channels: usize, w: usize, h: usize, k: usize) -> Image {
+    Image::from_fn(channels, w, h, |(c, x, y)| {
+        (((x * 7 + y * 3 + c * 5 + k) % 11) as f32 - 5.0) * 0.037
+    })
+}
+
 /// Edge flux, the derivative of the edge's energy by its difference `d`:
 /// `2 (m (d - t) + s d) = a d - b` with `a = 2 (m + s)`, `b = 2 m t` precomputed per edge
 /// ([`Sweeper::new`]), so a step costs 3 operations per edge instead of 6.
@@ -902,19 +911,8 @@ mod tests {
     #[test]
     fn row_weights_equal_the_per_edge_formulas_bit_for_bit() {
         for (w, h) in [(1, 1), (1, 5), (6, 1), (9, 7), (37, 4)] {
-            let wave = |k: usize| {
-                move |(c, x, y): (usize, usize, usize)| {
-                    (((x * 7 + y * 3 + c * 5 + k) % 11) as f32 - 5.0) * 0.037
-                }
-            };
-            let (dx, dy) = (
-                Image::from_fn(3, w, h, wave(1)),
-                Image::from_fn(3, w, h, wave(2)),
-            );
-            let (alb, nrm) = (
-                Image::from_fn(3, w, h, wave(3)),
-                Image::from_fn(3, w, h, wave(4)),
-            );
+            let (dx, dy) = (wave(3, w, h, 1), wave(3, w, h, 2));
+            let (alb, nrm) = (wave(3, w, h, 3), wave(3, w, h, 4));
             for features in [
                 [None, None],
                 [Some(&alb), None],

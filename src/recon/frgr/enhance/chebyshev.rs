@@ -430,25 +430,10 @@ impl Operator<'_> {
         coef: f32,
         first: Option<f32>,
     ) {
-        let s = self.sweeper;
-        let (w, h) = (s.w, s.h);
-        let o = y * w;
-        let mid = &v[o..o + w];
-        let (up, a_up) = if y > 0 {
-            (&v[o - w..o], &s.ay[o - w..o])
-        } else {
-            (mid, &s.ay[(h - 1) * w..h * w])
-        };
-        let down = if y + 1 < h { &v[o + w..o + 2 * w] } else { mid };
-        product_row(
-            [up, mid, down],
-            [&s.ax[o..o + w], a_up, &s.ay[o..o + w]],
-            out,
-            img,
-            alpha,
-            coef,
-            first,
-        );
+        let w = self.sweeper.w;
+        let (rows, [a_up, a_down]) = self.neighbours(y, |r| &v[r * w..(r + 1) * w]);
+        let ax = &self.sweeper.ax[y * w..(y + 1) * w];
+        product_row(rows, [ax, a_up, a_down], out, img, alpha, coef, first);
     }
 
     /// Row `y` of `-grad E(v)` into `out`, `v` one channel plane: per pixel `right - left +
@@ -533,7 +518,6 @@ mod tests {
 
     #[test]
     fn two_terms_in_one_sweep_equal_two_sweeps_bit_for_bit() {
-        use crate::image::Image;
         // Heights around the band's (one and two rows left over, a band of one row, bands
         // of the whole image), widths of one pixel and odd ones.
         for (w, h) in [
@@ -547,20 +531,12 @@ mod tests {
             (5, 65),
             (1, 70),
         ] {
-            let wave = |k: usize| {
-                move |(c, x, y): (usize, usize, usize)| {
-                    (((x * 7 + y * 3 + c * 5 + k) % 11) as f32 - 5.0) * 0.037
-                }
-            };
-            let (dx, dy) = (
-                Image::from_fn(3, w, h, wave(1)),
-                Image::from_fn(3, w, h, wave(2)),
-            );
-            let albedo = Image::from_fn(3, w, h, wave(3));
+            let wave = |k| super::super::wave(3, w, h, k);
+            let (dx, dy, albedo) = (wave(1), wave(2), wave(3));
             let wt = super::super::EnhanceWeights::new(&dx, &dy, Some(&albedo), None, 0.7).unwrap();
             let sweeper = Sweeper::new(dx.as_slice(), dy.as_slice(), &wt).unwrap();
             let n = w * h;
-            let plane = |k: usize| Image::from_fn(1, w, h, wave(k)).as_slice().to_vec();
+            let plane = |k| super::super::wave(1, w, h, k).as_slice().to_vec();
             let (alpha, coefs) = (0.37f32, [0.61f32, -0.23]);
             for c in 0..3 {
                 let op = Operator {
