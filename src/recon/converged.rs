@@ -41,40 +41,42 @@ pub(crate) fn converged_mask(frame: &Frame) -> Result<Option<Vec<bool>>> {
     let mut mask = try_vec(n, false)?;
     // Row by row over slices (so that the tests vectorise), each condition and edge as the
     // definition above states it; the edge between two rows is tested in both.
-    mask.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        row.fill(true);
-        let mut edge = vec![false; w.saturating_sub(1)];
-        for c in 0..3 {
-            let o = c * n + y * w;
-            let (i, v) = (&colour[o..][..w], &var[o..][..w]);
-            for ((m, &i), &v) in row.iter_mut().zip(i).zip(v) {
-                *m &= v <= (RELATIVE_NOISE * i) * (RELATIVE_NOISE * i);
-            }
-            // Across each edge to the right, for the pixels on both sides.
-            let (g, right) = (&dx[o..][..edge.len()], &i[1..]);
-            for (((e, &g), &a), &b) in edge.iter_mut().zip(g).zip(i).zip(right) {
-                *e = close(g, a, b);
-            }
-            for (m, &e) in row.iter_mut().zip(&edge) {
-                *m &= e;
-            }
-            for (m, &e) in row.iter_mut().skip(1).zip(&edge) {
-                *m &= e;
-            }
-            if y + 1 < h {
-                let (g, below) = (&dy[o..][..w], &colour[o + w..][..w]);
-                for (((m, &g), &a), &b) in row.iter_mut().zip(g).zip(i).zip(below) {
-                    *m &= close(g, a, b);
+    let scratch = || vec![false; w - 1];
+    mask.par_chunks_mut(w)
+        .enumerate()
+        .for_each_init(scratch, |edge, (y, row)| {
+            row.fill(true);
+            for c in 0..3 {
+                let o = c * n + y * w;
+                let (i, v) = (&colour[o..][..w], &var[o..][..w]);
+                for ((m, &i), &v) in row.iter_mut().zip(i).zip(v) {
+                    *m &= v <= (RELATIVE_NOISE * i) * (RELATIVE_NOISE * i);
+                }
+                // Across each edge to the right, for the pixels on both sides.
+                let (g, right) = (&dx[o..][..edge.len()], &i[1..]);
+                for (((e, &g), &a), &b) in edge.iter_mut().zip(g).zip(i).zip(right) {
+                    *e = close(g, a, b);
+                }
+                for (m, &e) in row.iter_mut().zip(edge.iter()) {
+                    *m &= e;
+                }
+                for (m, &e) in row.iter_mut().skip(1).zip(edge.iter()) {
+                    *m &= e;
+                }
+                if y + 1 < h {
+                    let (g, below) = (&dy[o..][..w], &colour[o + w..][..w]);
+                    for (((m, &g), &a), &b) in row.iter_mut().zip(g).zip(i).zip(below) {
+                        *m &= close(g, a, b);
+                    }
+                }
+                if y > 0 {
+                    let (g, above) = (&dy[o - w..][..w], &colour[o - w..][..w]);
+                    for (((m, &g), &a), &b) in row.iter_mut().zip(g).zip(above).zip(i) {
+                        *m &= close(g, a, b);
+                    }
                 }
             }
-            if y > 0 {
-                let (g, above) = (&dy[o - w..][..w], &colour[o - w..][..w]);
-                for (((m, &g), &a), &b) in row.iter_mut().zip(g).zip(above).zip(i) {
-                    *m &= close(g, a, b);
-                }
-            }
-        }
-    });
+        });
     Ok(mask.iter().any(|&c| c).then_some(mask))
 }
 

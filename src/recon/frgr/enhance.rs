@@ -140,21 +140,23 @@ impl EnhanceWeights {
             .zip(wts.sx.par_chunks_mut(w))
             .zip(wts.my.par_chunks_mut(w).zip(wts.sy.par_chunks_mut(w)))
             .enumerate()
-            .for_each(|(y, ((mx, sx), (my, sy)))| {
-                let at = y * w;
-                let mut scratch = vec![0.0f32; 2 * w];
-                let across = w - 1;
-                fidelity_row(dx, at, &mut mx[..across]);
-                if smooth {
-                    smoothness_row(features, (at, 1), lambda, &mut scratch, &mut sx[..across]);
-                }
-                if y + 1 < h {
-                    fidelity_row(dy, at, my);
+            .for_each_init(
+                || vec![0.0f32; 2 * w],
+                |scratch, (y, ((mx, sx), (my, sy)))| {
+                    let at = y * w;
+                    let across = w - 1;
+                    fidelity_row(dx, at, &mut mx[..across]);
                     if smooth {
-                        smoothness_row(features, (at, w), lambda, &mut scratch, sy);
+                        smoothness_row(features, (at, 1), lambda, scratch, &mut sx[..across]);
                     }
-                }
-            });
+                    if y + 1 < h {
+                        fidelity_row(dy, at, my);
+                        if smooth {
+                            smoothness_row(features, (at, w), lambda, scratch, sy);
+                        }
+                    }
+                },
+            );
         Ok(wts)
     }
 }
