@@ -36,7 +36,10 @@
 //! for AVX2 + FMA, picked at run time (`multiversion`); the exponential's polynomial, the
 //! accumulations and the squared differences are `fastmath::madd`s, one FMA instruction in
 //! those two builds (the same bits in both), a multiply and an add in the baseline build for a
-//! CPU without FMA (Rust never fuses them on its own). What each of these gained is in
+//! CPU without FMA (Rust never fuses them on its own). The colour, variance and features are
+//! padded once for both filters (the candidates' and the selection's; the first reads the
+//! colour as its data), and each tile writes its part of the output rows itself instead of
+//! returning a tile to be copied into place. What each of these gained is in
 //! `docs/benchmarks.md`. The previous implementation is kept in the tests as the reference.
 
 use rayon::prelude::*;
@@ -549,13 +552,49 @@ fn sum_into<const K: usize>(out: &mut [f32], rows: &[&[f32]], init: bool) {
     }
 }
 
-/// What every tile of one [`nlm_candidates`] call shares.
-struct Nlm<'a> {
+/// What both of RDFC's filters read (the candidates' and the selection's), padded once for
+/// the wider window: the colour, its variance, and each feature with `1 / (channels k_f^2 D_p)`
+/// per pixel.
+pub(crate) struct Inputs {
     colour: PaddedRows,
     var: PaddedRows,
-    data: PaddedRows,
-    /// Each feature with `1 / (channels k_f^2 D_p)` per pixel.
     features: Vec<(PaddedRows, Vec<f32>)>,
+}
+
+impl Inputs {
+    /// The inputs of filters with windows of radius up to `pad`.
+    pub(crate) fn new(
+        colour: &Image,
+        var: &Image,
+        features: &[Feature],
+        pad: usize,
+    ) -> Result<Self> {
+        assert!(
+            colour.channels() == 3 && var.channels() == 3,
+            "colour and variance have 3 channels"
+        );
+        Ok(Inputs {
+            colour: PaddedRows::new(colour, pad)?,
+            var: PaddedRows::new(var, pad)?,
+            features: features
+                .iter()
+                .map(|f| {
+                    let ch = f.img.channels() as f32;
+                    let mut inv = try_vec(f.norm.len(), 0.0f32)?;
+                    inv.par_iter_mut().zip(&f.norm).for_each(|(inv, &d)| {
+                        *inv = 1.0 / (ch * d);
+                    });
+                    Ok((PaddedRows::new(f.img, pad)?, inv))
+                })
+                .collect::<Result<_>>()?,
+        })
+    }
+}
+
+/// What every tile of one [`filter`] call shares.
+struct Nlm<'a> {
+    inputs: &'a Inputs,
+    data: &'a PaddedRows,
     radius: usize,
     candidates: &'a [Candidate],
     /// The distinct patch radii of the candidates with a colour term, and the largest.
@@ -578,13 +617,17 @@ impl Nlm<'_> {
         (y, qy): (usize, usize),
         ox: isize,
     ) {
-        let w = self.colour.w;
+        let w = self.inputs.colour.w;
         // `fd` starts at 0: zeroed here unless the first feature's pass writes it whole.
-        let mut fresh = self.features.first().is_some_and(|(f, _)| f.channels == 3);
+        let mut fresh = self
+            .inputs
+            .features
+            .first()
+            .is_some_and(|(f, _)| f.channels == 3);
         if !fresh {
             fd.fill(0.0);
         }
-        for (f, inv) in &self.features {
+        for (f, inv) in &self.inputs.features {
             let inv = &inv[y * w + x0..y * w + x0 + len];
             if f.channels == 3 {
                 let (fp, fq) = (f.rows3(y, x0, 0, len), f.rows3(qy, x0, ox, len));
@@ -607,15 +650,16 @@ impl Nlm<'_> {
         }
     }
 
-    /// Filters the tile of columns `x0..x1`, rows `y0..y1`: per candidate `k` and data channel
-    /// `c`, plane `k * channels + c` of the first result (tile-sized planes); per candidate,
-    /// the centre weight ratio plane.
+    /// Filters the tile of columns `x0..x1`, rows `y0..y1` into `dest`, the tile's parts of the
+    /// output rows: per candidate `k`, its filtered data channels `c` then its centre weight
+    /// ratio, plane `q = k (channels + 1) + c`, row `t` of the tile at `dest[q * rows + t]`.
     fn tile(
         &self,
         (x0, x1): (usize, usize),
         (y0, y1): (usize, usize),
-    ) -> Result<(Vec<f32>, Vec<f32>)> {
-        let (w, h) = (self.colour.w, self.colour.h);
+        dest: &mut [&mut [f32]],
+    ) -> Result<()> {
+        let (w, h) = (self.inputs.colour.w, self.inputs.colour.h);
         let (tw, th) = (x1 - x0, y1 - y0);
         let tn = tw * th;
         let (m, dch) = (self.candidates.len(), self.data.channels);
@@ -672,14 +716,14 @@ impl Nlm<'_> {
                 // later), then their patch sums.
                 for (row, py) in (ys..ye).enumerate() {
                     let own = (
-                        self.colour.rows3(py, xs, 0, dw),
-                        self.var.rows3(py, xs, 0, dw),
+                        self.inputs.colour.rows3(py, xs, 0, dw),
+                        self.inputs.var.rows3(py, xs, 0, dw),
                     );
                     let other = |(ox, oy): (isize, isize)| {
                         let qy = reflect(py as isize + oy, h);
                         (
-                            self.colour.rows3(qy, xs, ox, dw),
-                            self.var.rows3(qy, xs, ox, dw),
+                            self.inputs.colour.rows3(qy, xs, ox, dw),
+                            self.inputs.var.rows3(qy, xs, ox, dw),
                         )
                     };
                     let at = row * dwp + off..row * dwp + off + dw;
@@ -721,7 +765,7 @@ impl Nlm<'_> {
                         .get(s)
                         .map_or(0, |&(_, oy)| reflect(y as isize + oy, h))
                 });
-                match (&self.features[..], group) {
+                match (&self.inputs.features[..], group) {
                     // Albedo and normal, a pair of offsets: both distances in one pass.
                     ([(fa, ia), (fb, ib)], &[(ox0, _), (ox1, _)])
                         if fa.channels == 3 && fb.channels == 3 =>
@@ -780,28 +824,30 @@ impl Nlm<'_> {
             }
         }
         // The centre takes the largest neighbour weight (at least 1e-3).
-        let mut ratio = try_vec(m * tn, 0.0f32)?;
         for k in 0..m {
+            let plane = |c: usize| (k * (dch + 1) + c) * th;
             for (t, y) in (y0..y1).enumerate() {
                 let at = k * tn + t * tw;
-                for i in at..at + tw {
+                let ratio = &mut dest[plane(dch) + t][..tw];
+                for (i, ratio) in (at..at + tw).zip(ratio) {
                     let wc = maxw[i].max(1e-3);
                     let total = den[i] + wc;
-                    ratio[i] = wc / total;
+                    *ratio = wc / total;
                     den[i] = total;
                     maxw[i] = wc;
                 }
                 for ch in 0..dch {
                     let dp = self.data.row(ch, y, x0, 0, tw);
                     let a = (k * dch + ch) * tn + t * tw;
-                    for (i, &v) in (a..a + tw).zip(dp) {
+                    let out = &mut dest[plane(ch) + t][..tw];
+                    for ((out, i), &v) in out.iter_mut().zip(a..a + tw).zip(dp) {
                         let j = i - a + at;
-                        num[i] = (num[i] + maxw[j] * v) / den[j];
+                        *out = (num[i] + maxw[j] * v) / den[j];
                     }
                 }
             }
         }
-        Ok((num, ratio))
+        Ok(())
     }
 }
 
@@ -809,10 +855,9 @@ impl Nlm<'_> {
 /// `var`) and `features`, for each candidate; returns per candidate the filtered data and the
 /// centre weight ratio `w_centre / sum w` per pixel. Colour, variance and data have 3
 /// channels. Once `stop` is cancelled the tiles not yet started are skipped (the result is
-/// then incomplete; the caller checks `stop`).
-///
-/// Tiles (in parallel) loop over the window offsets, and per offset over their rows; a tile's
-/// result depends on nothing but its pixels, so the output does not depend on the threads.
+/// then incomplete; the caller checks `stop`). (RDFC itself pads its inputs once for both of
+/// its filters, [`filter`]; the tests call this form.)
+#[cfg(test)]
 pub(crate) fn nlm_candidates(
     colour: &Image,
     var: &Image,
@@ -822,12 +867,43 @@ pub(crate) fn nlm_candidates(
     candidates: &[Candidate],
     stop: &Progress,
 ) -> Result<Vec<(Image, Vec<f32>)>> {
-    assert!(
-        colour.channels() == 3 && var.channels() == 3 && data.channels() == 3,
-        "colour, variance and data have 3 channels"
-    );
-    let (w, h) = colour.size();
+    let inputs = Inputs::new(colour, var, features, radius)?;
+    filter(&inputs, Some(data), radius, candidates, stop)
+}
+
+/// [`nlm_candidates`] on inputs already padded (by at least `radius`), of `data` (`None`: the
+/// colour itself, as RDFC's first filter).
+///
+/// Tiles (in parallel) loop over the window offsets, and per offset over their rows; a tile's
+/// result depends on nothing but its pixels, so the output does not depend on the threads.
+/// Each tile writes its part of the output rows (slices cut before the tiles start), not a
+/// tile-sized result copied into place afterwards.
+fn filter(
+    inputs: &Inputs,
+    data: Option<&Image>,
+    radius: usize,
+    candidates: &[Candidate],
+    stop: &Progress,
+) -> Result<Vec<(Image, Vec<f32>)>> {
+    let (w, h) = (inputs.colour.w, inputs.colour.h);
     let n = w * h;
+    let padded;
+    let data = match data {
+        Some(img) => {
+            assert!(img.channels() == 3, "data has 3 channels");
+            padded = PaddedRows::new(img, radius)?;
+            &padded
+        }
+        None => &inputs.colour,
+    };
+    let dch = data.channels;
+    let m = candidates.len();
+    let mut out: Vec<(Image, Vec<f32>)> = (0..m)
+        .map(|_| Ok((Image::try_zeros(dch, w, h)?, try_zeroed_vec(n)?)))
+        .collect::<Result<_>>()?;
+    if n == 0 {
+        return Ok(out);
+    }
     let mut radii: Vec<usize> = candidates
         .iter()
         .filter(|c| c.kc.is_some())
@@ -836,20 +912,8 @@ pub(crate) fn nlm_candidates(
     radii.sort_unstable();
     radii.dedup();
     let nlm = Nlm {
-        colour: PaddedRows::new(colour, radius)?,
-        var: PaddedRows::new(var, radius)?,
-        data: PaddedRows::new(data, radius)?,
-        features: features
-            .iter()
-            .map(|f| {
-                let ch = f.img.channels() as f32;
-                let mut inv = try_vec(f.norm.len(), 0.0f32)?;
-                for (inv, &d) in inv.iter_mut().zip(&f.norm) {
-                    *inv = 1.0 / (ch * d);
-                }
-                Ok((PaddedRows::new(f.img, radius)?, inv))
-            })
-            .collect::<Result<_>>()?,
+        inputs,
+        data,
         radius,
         candidates,
         patch: radii.last().copied().unwrap_or(0),
@@ -871,49 +935,34 @@ pub(crate) fn nlm_candidates(
                 .map(move |x0| ((x0, (x0 + TILE.0).min(w)), (y0, (y0 + TILE.1).min(h))))
         })
         .collect();
-    let results: Vec<(Vec<f32>, Vec<f32>)> = tiles
-        .par_iter()
-        .map(|&(xr, yr)| {
-            if stop.stopped() {
-                Ok((Vec::new(), Vec::new()))
-            } else {
-                nlm.tile(xr, yr)
+    // Each tile's parts of the output rows, in the order `Nlm::tile` takes them: plane by
+    // plane (a candidate's channels, then its ratio), row by row.
+    let columns = w.div_ceil(TILE.0);
+    let mut dest: Vec<Vec<&mut [f32]>> = tiles.iter().map(|_| Vec::new()).collect();
+    for (img, ratio) in &mut out {
+        let planes = img.as_mut_slice().chunks_exact_mut(n);
+        for plane in planes.chain(std::iter::once(ratio.as_mut_slice())) {
+            for (y, row) in plane.chunks_exact_mut(w).enumerate() {
+                for (tx, part) in row.chunks_mut(TILE.0).enumerate() {
+                    dest[y / TILE.1 * columns + tx].push(part);
+                }
             }
-        })
-        .collect::<Result<_>>()?;
-    let (m, dch) = (candidates.len(), data.channels());
-    let mut out: Vec<(Image, Vec<f32>)> = (0..m)
-        .map(|_| Ok((Image::try_zeros(dch, w, h)?, try_zeroed_vec(n)?)))
-        .collect::<Result<_>>()?;
-    // The tiles' results into each candidate's planes (its ratio, then its channels), the
-    // planes in parallel.
-    let mut planes: Vec<(usize, Option<usize>, &mut [f32])> = Vec::new();
-    for (k, (img, rat)) in out.iter_mut().enumerate() {
-        planes.push((k, None, rat.as_mut_slice()));
-        if n > 0 {
-            let channels = img.as_mut_slice().chunks_exact_mut(n).enumerate();
-            planes.extend(channels.map(|(ch, p)| (k, Some(ch), p)));
         }
     }
-    planes.into_par_iter().for_each(|(k, ch, plane)| {
-        for (&((x0, x1), (y0, y1)), (num, ratio)) in tiles.iter().zip(&results) {
-            if num.is_empty() {
-                continue; // skipped after a cancel
+    tiles
+        .par_iter()
+        .zip(dest)
+        .try_for_each(|(&(xr, yr), mut dest)| {
+            if stop.stopped() {
+                Ok(())
+            } else {
+                nlm.tile(xr, yr, &mut dest)
             }
-            let (tw, tn) = (x1 - x0, (x1 - x0) * (y1 - y0));
-            for (t, y) in (y0..y1).enumerate() {
-                let src = match ch {
-                    None => &ratio[k * tn + t * tw..][..tw],
-                    Some(ch) => &num[(k * dch + ch) * tn + t * tw..][..tw],
-                };
-                plane[y * w + x0..][..tw].copy_from_slice(src);
-            }
-        }
-    });
+        })?;
     Ok(out)
 }
 
-/// The signature of [`nlm_candidates`] (tests swap in a straightforward version).
+/// The signature of [`nlm_candidates`] (tests run RDFC with a straightforward version).
 type NlmFn = fn(
     &Image,
     &Image,
@@ -927,6 +976,9 @@ type NlmFn = fn(
 /// The window radius of the release's candidate filters: 21 x 21.
 pub(crate) const RADIUS: usize = 10;
 
+/// The window radius of the filter that smooths the candidates' selection: 7 x 7.
+const SELECTION_RADIUS: usize = 3;
+
 /// The RDFC pre-denoised guide of `colour` (variance of the mean `var`), its candidate
 /// filters over windows of `radius` ([`RADIUS`] in the release); incomplete when `stop` is
 /// cancelled (the caller checks it).
@@ -938,7 +990,7 @@ pub(crate) fn rdfc(
     radius: usize,
     stop: &Progress,
 ) -> Result<Image> {
-    rdfc_with(colour, var, albedo, normal, radius, nlm_candidates, stop)
+    rdfc_with(colour, var, albedo, normal, radius, None, stop)
 }
 
 fn rdfc_with(
@@ -947,7 +999,7 @@ fn rdfc_with(
     albedo: Option<&Image>,
     normal: Option<&Image>,
     radius: usize,
-    nlm_candidates: NlmFn,
+    reference: Option<NlmFn>,
     stop: &Progress,
 ) -> Result<Image> {
     let (w, h) = colour.size();
@@ -960,7 +1012,17 @@ fn rdfc_with(
         .chain(normal)
         .map(Feature::new)
         .collect::<Result<_>>()?;
-    let filtered = nlm_candidates(colour, var, &features, colour, radius, &CANDIDATES, stop)?;
+    // Both filters read the colour, variance and features padded once (the selection's
+    // window is the narrower); a reference implementation (tests) takes the images.
+    let inputs = Inputs::new(colour, var, &features, radius.max(SELECTION_RADIUS))?;
+    let nlm = |data: Option<&Image>, radius: usize, candidates: &[Candidate]| {
+        if let Some(reference) = reference {
+            let data = data.unwrap_or(colour);
+            return reference(colour, var, &features, data, radius, candidates, stop);
+        }
+        filter(&inputs, data, radius, candidates, stop)
+    };
+    let filtered = nlm(None, radius, &CANDIDATES)?;
     if stop.stopped() {
         return colour.try_clone();
     }
@@ -1009,17 +1071,13 @@ fn rdfc_with(
             *v = f32::from(u8::from(usize::from(b) == k));
         }
     })?;
-    let sel = nlm_candidates(
-        colour,
-        var,
-        &features,
-        &onehot,
-        3,
+    let sel = nlm(
+        Some(&onehot),
+        SELECTION_RADIUS,
         &[Candidate {
             patch: 1,
             kc: Some(0.5),
         }],
-        stop,
     )?
     .remove(0)
     .0;

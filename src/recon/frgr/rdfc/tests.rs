@@ -237,6 +237,39 @@ fn tiled_nlm_does_not_depend_on_the_thread_count() {
 }
 
 #[test]
+fn rdfc_on_inputs_padded_once_equals_padding_per_filter_bit_for_bit() {
+    // RDFC pads colour, variance and features once, for the wider of its two windows, and its
+    // first filter reads the colour as its data; the same filters given the images (each call
+    // padding them by its own radius) must give the same bits. Sizes from smaller than the
+    // window to more than a tile.
+    for (w, h) in [(5, 3), (23, 17), (TILE.0 + 5, 2 * TILE.1 + 3)] {
+        let (colour, var, albedo, normal) = synthetic(w, h);
+        for radius in [2, 4, RADIUS] {
+            let run = |reference: Option<NlmFn>| {
+                rdfc_with(
+                    &colour,
+                    &var,
+                    Some(&albedo),
+                    Some(&normal),
+                    radius,
+                    reference,
+                    &Progress::none(),
+                )
+                .unwrap()
+            };
+            let (once, each) = (run(None), run(Some(nlm_candidates)));
+            let bits = |img: &Image| {
+                img.as_slice()
+                    .iter()
+                    .map(|v| v.to_bits())
+                    .collect::<Vec<_>>()
+            };
+            assert_eq!(bits(&once), bits(&each), "{w} x {h}, radius {radius}");
+        }
+    }
+}
+
+#[test]
 fn tiled_nlm_matches_the_straightforward_one_on_tiny_images() {
     for (w, h) in [(1, 1), (2, 1), (1, 5), (5, 3), (4, 9), (7, 7), (12, 2)] {
         let (colour, var, albedo, normal) = synthetic(w, h);
@@ -278,7 +311,7 @@ fn rdfc_matches_the_straightforward_one() {
     let (colour, var, albedo, normal) = synthetic(90, 50);
     let mut guides = Vec::new();
     for radius in [RADIUS, 4] {
-        let run = |nlm: NlmFn| {
+        let run = |nlm: Option<NlmFn>| {
             rdfc_with(
                 &colour,
                 &var,
@@ -290,7 +323,7 @@ fn rdfc_matches_the_straightforward_one() {
             )
             .unwrap()
         };
-        let (fast, slow) = (run(nlm_candidates), run(naive_nlm_candidates));
+        let (fast, slow) = (run(None), run(Some(naive_nlm_candidates)));
         let d = max_rel(&fast, &slow, 1e-3);
         assert!(d <= 1e-4, "radius {radius}: {d:e}");
         guides.push(fast);
@@ -326,7 +359,7 @@ fn rdfc_on_frames_matches_the_straightforward_one() {
             albedo,
             normal,
             RADIUS,
-            naive_nlm_candidates,
+            Some(naive_nlm_candidates),
             &Progress::none(),
         )
         .unwrap();
