@@ -555,7 +555,7 @@ fn sum_into<const K: usize>(out: &mut [f32], rows: &[&[f32]], init: bool) {
 /// What both of RDFC's filters read (the candidates' and the selection's), padded once for
 /// the wider window: the colour, its variance, and each feature with `1 / (channels k_f^2 D_p)`
 /// per pixel.
-pub(crate) struct Inputs {
+struct Inputs {
     colour: PaddedRows,
     var: PaddedRows,
     features: Vec<(PaddedRows, Vec<f32>)>,
@@ -563,12 +563,7 @@ pub(crate) struct Inputs {
 
 impl Inputs {
     /// The inputs of filters with windows of radius up to `pad`.
-    pub(crate) fn new(
-        colour: &Image,
-        var: &Image,
-        features: &[Feature],
-        pad: usize,
-    ) -> Result<Self> {
+    fn new(colour: &Image, var: &Image, features: &[Feature], pad: usize) -> Result<Self> {
         assert!(
             colour.channels() == 3 && var.channels() == 3,
             "colour and variance have 3 channels"
