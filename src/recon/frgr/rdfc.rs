@@ -184,7 +184,7 @@ fn box_row(s: &[f32], r: usize, out: &mut [f32]) {
     }
 }
 
-/// Side lengths (columns, rows) of the tiles [`nlm_candidates`] works on: a tile's inputs
+/// Side lengths (columns, rows) of the tiles [`filter`] works on: a tile's inputs
 /// (with the window's margin) and accumulators stay in a core's L2 cache for all offsets.
 /// Measured at 720p (RDFC, s): 128 x 32 1.31, 128 x 16 1.34, 64 x 16 1.48, 256 x 16 1.17,
 /// 256 x 32 1.21, 512 x 16 1.22, 1280 x 8 1.48: longer rows amortise the per-row calls.
@@ -359,7 +359,7 @@ fn feature_distance_pair(
     }
 }
 
-/// The inputs of [`weigh_row`]: a row of patch sums and its scale, the feature distance
+/// The inputs of [`weigh_rows`]: a row of patch sums and its scale, the feature distance
 /// `fd >= 0` and the neighbours' data (3 channels).
 struct WeighInputs<'a> {
     patch: &'a [f32],
@@ -846,12 +846,7 @@ impl Nlm<'_> {
     }
 }
 
-/// Joint NLM / bilateral filtering of `data` guided by `colour` (with its per-channel variance
-/// `var`) and `features`, for each candidate; returns per candidate the filtered data and the
-/// centre weight ratio `w_centre / sum w` per pixel. Colour, variance and data have 3
-/// channels. Once `stop` is cancelled the tiles not yet started are skipped (the result is
-/// then incomplete; the caller checks `stop`). (RDFC itself pads its inputs once for both of
-/// its filters, [`filter`]; the tests call this form.)
+/// [`filter`] on images, padded for this one call (the form the tests compare and swap).
 #[cfg(test)]
 pub(crate) fn nlm_candidates(
     colour: &Image,
@@ -866,8 +861,12 @@ pub(crate) fn nlm_candidates(
     filter(&inputs, Some(data), radius, candidates, stop)
 }
 
-/// [`nlm_candidates`] on inputs already padded (by at least `radius`), of `data` (`None`: the
-/// colour itself, as RDFC's first filter).
+/// Joint NLM / bilateral filtering of `data` (`None`: the colour itself, as RDFC's first
+/// filter) guided by the colour (with its per-channel variance) and the features of `inputs`
+/// (padded by at least `radius`), for each candidate; returns per candidate the filtered data
+/// and the centre weight ratio `w_centre / sum w` per pixel. Colour, variance and data have 3
+/// channels. Once `stop` is cancelled the tiles not yet started are skipped (the result is
+/// then incomplete; the caller checks `stop`).
 ///
 /// Tiles (in parallel) loop over the window offsets, and per offset over their rows; a tile's
 /// result depends on nothing but its pixels, so the output does not depend on the threads.
@@ -957,7 +956,8 @@ fn filter(
     Ok(out)
 }
 
-/// The signature of [`nlm_candidates`] (tests run RDFC with a straightforward version).
+/// The signature of the tests' `nlm_candidates` (they also run RDFC with a straightforward
+/// version of it).
 type NlmFn = fn(
     &Image,
     &Image,

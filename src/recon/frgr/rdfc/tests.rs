@@ -161,6 +161,27 @@ fn synthetic(w: usize, h: usize) -> (Image, Image, Image, Image) {
 }
 
 /// Largest `|a - b| / max(|b|, floor)` over the two images.
+/// RDFC of [`synthetic`]'s images over windows of `radius`: its own filters (`None`), or
+/// `reference` given the images at each call.
+fn rdfc_of(
+    images: &(Image, Image, Image, Image),
+    radius: usize,
+    reference: Option<NlmFn>,
+) -> Image {
+    let (colour, var, albedo, normal) = images;
+    let stop = Progress::none();
+    rdfc_with(
+        colour,
+        var,
+        Some(albedo),
+        Some(normal),
+        radius,
+        reference,
+        &stop,
+    )
+    .unwrap()
+}
+
 fn max_rel(a: &Image, b: &Image, floor: f32) -> f32 {
     a.as_slice()
         .iter()
@@ -243,20 +264,9 @@ fn rdfc_on_inputs_padded_once_equals_padding_per_filter_bit_for_bit() {
     // padding them by its own radius) must give the same bits. Sizes from smaller than the
     // window to more than a tile.
     for (w, h) in [(5, 3), (23, 17), (TILE.0 + 5, 2 * TILE.1 + 3)] {
-        let (colour, var, albedo, normal) = synthetic(w, h);
+        let images = synthetic(w, h);
         for radius in [2, 4, RADIUS] {
-            let run = |reference: Option<NlmFn>| {
-                rdfc_with(
-                    &colour,
-                    &var,
-                    Some(&albedo),
-                    Some(&normal),
-                    radius,
-                    reference,
-                    &Progress::none(),
-                )
-                .unwrap()
-            };
+            let run = |reference| rdfc_of(&images, radius, reference);
             let (once, each) = (run(None), run(Some(nlm_candidates)));
             let bits = |img: &Image| {
                 img.as_slice()
@@ -308,21 +318,10 @@ fn tiled_nlm_matches_the_straightforward_one_on_tiny_images() {
 /// guide.
 #[test]
 fn rdfc_matches_the_straightforward_one() {
-    let (colour, var, albedo, normal) = synthetic(90, 50);
+    let images = synthetic(90, 50);
     let mut guides = Vec::new();
     for radius in [RADIUS, 4] {
-        let run = |nlm: Option<NlmFn>| {
-            rdfc_with(
-                &colour,
-                &var,
-                Some(&albedo),
-                Some(&normal),
-                radius,
-                nlm,
-                &Progress::none(),
-            )
-            .unwrap()
-        };
+        let run = |reference| rdfc_of(&images, radius, reference);
         let (fast, slow) = (run(None), run(Some(naive_nlm_candidates)));
         let d = max_rel(&fast, &slow, 1e-3);
         assert!(d <= 1e-4, "radius {radius}: {d:e}");
