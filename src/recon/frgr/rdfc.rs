@@ -575,7 +575,7 @@ impl Inputs {
                 .iter()
                 .map(|f| {
                     let ch = f.img.channels() as f32;
-                    let mut inv = try_vec(f.norm.len(), 0.0f32)?;
+                    let mut inv = try_zeroed_vec::<f32>(f.norm.len())?;
                     inv.par_iter_mut().zip(&f.norm).for_each(|(inv, &d)| {
                         *inv = 1.0 / (ch * d);
                     });
