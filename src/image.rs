@@ -282,14 +282,24 @@ fn too_large(channels: usize, width: usize, height: usize) -> Error {
 /// aborting the process.
 pub(crate) fn try_vec<T: Clone>(len: usize, value: T) -> Result<Vec<T>> {
     let mut v = Vec::new();
-    v.try_reserve_exact(len).map_err(|_| {
-        Error::OutOfMemory(format!(
-            "cannot allocate {} MiB",
-            (len as u128 * std::mem::size_of::<T>() as u128) >> 20
-        ))
-    })?;
-    v.resize(len, value);
+    try_resize(&mut v, len, value)?;
     Ok(v)
+}
+
+/// Makes `v` `len` values long, as [`Vec::resize`] (the values it holds stay, new ones are
+/// `value`), or fails with [`Error::OutOfMemory`]: for buffers reused from one part of a job to
+/// the next, which the caller overwrites.
+pub(crate) fn try_resize<T: Clone>(v: &mut Vec<T>, len: usize, value: T) -> Result<()> {
+    if len > v.len() {
+        v.try_reserve_exact(len - v.len()).map_err(|_| {
+            Error::OutOfMemory(format!(
+                "cannot allocate {} MiB",
+                (len as u128 * std::mem::size_of::<T>() as u128) >> 20
+            ))
+        })?;
+    }
+    v.resize(len, value);
+    Ok(())
 }
 
 /// `len` zeros from a zeroed allocation (large ones are fresh pages from the system, already

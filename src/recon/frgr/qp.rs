@@ -113,37 +113,54 @@ fn filter_rows<const K: usize>(
     if w == 0 || h == 0 {
         return Ok((out, out_var, Skipped::default()));
     }
-    let bands: Vec<(Vec<f32>, Skipped)> = (0..h.div_ceil(BAND))
+    // Each band's rows of the six output planes (colour, then variance, channel by channel),
+    // cut before the bands start: a band writes its pixels in place.
+    let mut planes: Vec<_> = [&mut out, &mut out_var]
+        .into_iter()
+        .flat_map(|img| img.as_mut_slice().chunks_mut(w * h))
+        .map(|plane| plane.chunks_mut(BAND * w))
+        .collect();
+    let rows: Vec<[&mut [f32]; 6]> = (0..h.div_ceil(BAND))
+        .map(|_| std::array::from_fn(|s| planes[s].next().expect("a band's rows")))
+        .collect();
+    let skipped = rows
         .into_par_iter()
-        .map(|band| {
+        .enumerate()
+        .map_init(Worker::default, |worker, (band, rows)| {
             if stop.stopped() {
-                Ok((Vec::new(), Skipped::default())) // copied below as no rows
+                Ok(Skipped::default()) // its rows stay 0
             } else {
-                filter_band::<K>(level, al, band)
+                filter_band::<K>(level, al, band, worker, rows)
             }
         })
-        .collect::<Result<_>>()?;
-    let mut skipped = Skipped::default();
-    for (band, (o, s)) in bands.iter().enumerate() {
-        skipped.empty += s.empty;
-        skipped.converged += s.converged;
-        for (i, o) in o.chunks_exact(6 * w).enumerate() {
-            for c in 0..3 {
-                for (dst, src) in [(&mut out, c), (&mut out_var, 3 + c)] {
-                    dst.plane_mut(c)
-                        .row_mut(band * BAND + i)
-                        .as_slice_mut()
-                        .expect("contiguous")
-                        .copy_from_slice(&o[src * w..(src + 1) * w]);
-                }
-            }
-        }
-    }
+        .try_reduce(Skipped::default, |a, b| {
+            Ok(Skipped {
+                empty: a.empty + b.empty,
+                converged: a.converged + b.converged,
+            })
+        })?;
     Ok((out, out_var, skipped))
 }
 
-/// Filters image rows `band * BAND ..` (at most [`BAND`] of them); returns per row colour then
-/// variance, channel by channel, and the pixels skipped. Compiled for AVX-512 and AVX2 too,
+/// What a worker keeps from one band to its next: the scratch of a lane group and the padded
+/// planes' buffers (allocated once per worker, not per band; every value is written before it
+/// is read).
+struct Worker<const K: usize> {
+    scratch: Option<Scratch<K>>,
+    spare: Vec<Vec<f32>>,
+}
+
+impl<const K: usize> Default for Worker<K> {
+    fn default() -> Self {
+        Worker {
+            scratch: None,
+            spare: Vec::new(),
+        }
+    }
+}
+
+/// Filters image rows `band * BAND ..` (at most [`BAND`] of them) into `rows` (those rows of the
+/// colour's planes, then of the variance's); returns the pixels skipped. Compiled for AVX-512 and AVX2 too,
 /// picked at run time: the whole solver is inlined into it, so its `F32x` arithmetic becomes
 /// 512-bit instructions (two registers per value) or 256-bit ones (four): independent chains
 /// that hide the latency of the solver's dependent steps (see [`LANES`]). Rust never contracts `a * b + c` on its own; the `madd`s fuse in both versions (they have FMA),
@@ -156,13 +173,15 @@ fn filter_band<const K: usize>(
     level: &QpLevel,
     al: &[f32; 5],
     band: usize,
-) -> Result<(Vec<f32>, Skipped)> {
+    worker: &mut Worker<K>,
+    mut rows: [&mut [f32]; 6],
+) -> Result<Skipped> {
     let (w, h) = level.img.size();
     let (n_px, r) = (w * h, level.radius);
     let side = 2 * r + 1;
     let (img, var) = (level.img.as_slice(), level.var.as_slice());
-    let (y0, rows) = (band * BAND, BAND.min(h - band * BAND));
-    let planes = Planes::new(level, (y0, rows))?;
+    let (y0, count) = (band * BAND, BAND.min(h - band * BAND));
+    let planes = Planes::new(level, (y0, count), &mut worker.spare)?;
     let terms = planes.terms(level, al, K);
     let ctx = Ctx::<K> {
         w,
@@ -176,15 +195,17 @@ fn filter_band<const K: usize>(
         v: &planes.v,
         up: planes.up.as_ref(),
     };
-    let mut scratch = Scratch::<K> {
-        b: try_vec(MAX_N, [F32x::default(); K])?,
-        v: try_vec(MAX_N, F32x::default())?,
-        w: try_vec(MAX_N, F32x::default())?,
+    let scratch = match &mut worker.scratch {
+        Some(scratch) => scratch,
+        none => none.insert(Scratch::<K> {
+            b: try_vec(MAX_N, [F32x::default(); K])?,
+            v: try_vec(MAX_N, F32x::default())?,
+            w: try_vec(MAX_N, F32x::default())?,
+        }),
     };
-    // Per row: colour then variance, channel by channel.
-    let mut out = try_vec(6 * w * rows, 0.0f32)?;
     let mut skipped = Skipped::default();
-    for (y, out) in (y0..y0 + rows).zip(out.chunks_exact_mut(6 * w)) {
+    for (t, y) in (y0..y0 + count).enumerate() {
+        let mut out = rows.each_mut().map(|plane| &mut plane[t * w..(t + 1) * w]);
         for x0 in (0..w).step_by(LANES) {
             let mut solve = [false; LANES];
             for (l, sl) in solve.iter_mut().enumerate() {
@@ -196,8 +217,8 @@ fn filter_band<const K: usize>(
                     skipped.empty += 1;
                 } else if level.converged.is_some_and(|m| m[p]) {
                     for c in 0..3 {
-                        out[c * w + x] = img[c * n_px + p];
-                        out[(3 + c) * w + x] = var[c * n_px + p];
+                        out[c][x] = img[c * n_px + p];
+                        out[3 + c][x] = var[c * n_px + p];
                     }
                     skipped.converged += 1;
                 } else {
@@ -205,11 +226,12 @@ fn filter_band<const K: usize>(
                 }
             }
             if solve.contains(&true) {
-                ctx.solve_group::<{ fused!() }>(&mut scratch, x0, y, solve, out);
+                ctx.solve_group::<{ fused!() }>(scratch, x0, y, solve, &mut out);
             }
         }
     }
-    Ok((out, skipped))
+    planes.recycle(&mut worker.spare);
+    Ok(skipped)
 }
 
 /// What every lane group of a level reads.
@@ -247,7 +269,7 @@ impl<const K: usize> Ctx<'_, K> {
     }
 
     /// Builds, solves and applies the QPs of pixels `x0..x0 + LANES` of row `y` (the lanes in
-    /// `solve`); writes colour to `out[c * w + x]` and variance to `out[(3 + c) * w + x]`.
+    /// `solve`); writes colour to `out[c][x]` and variance to `out[3 + c][x]`.
     #[inline(always)]
     fn solve_group<const FUSED: bool>(
         &self,
@@ -255,7 +277,7 @@ impl<const K: usize> Ctx<'_, K> {
         x0: usize,
         y: usize,
         solve: [bool; LANES],
-        out: &mut [f32],
+        out: &mut [&mut [f32]; 6],
     ) {
         let (w, side, n) = (self.w, self.side, self.n);
         // Window entry q = dy * side + dx of lane l is padded (x0 + l + dx, y - y0 + dy). Neighbour
@@ -366,8 +388,8 @@ impl<const K: usize> Ctx<'_, K> {
             }
             for l in 0..LANES {
                 if solve[l] {
-                    out[c * w + x0 + l] = o.0[l];
-                    out[(3 + c) * w + x0 + l] = ov.0[l];
+                    out[c][x0 + l] = o.0[l];
+                    out[3 + c][x0 + l] = ov.0[l];
                 }
             }
         }

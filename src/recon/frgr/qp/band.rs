@@ -4,7 +4,7 @@
 use super::lanes::{F32x, LANES};
 use super::level::QpLevel;
 use crate::error::Result;
-use crate::image::{try_vec, Image};
+use crate::image::{try_resize, Image};
 use crate::recon::frgr::util::{reflect, reflect_borders};
 
 /// Image rows per band. A band pads its own rows (plus the windows' halo) of every plane it
@@ -20,10 +20,13 @@ pub(super) struct Padded {
 }
 
 impl Padded {
-    /// Pads rows `y0 - r .. y0 + rows + r` of `channels` planes of a `w` x `h` image;
-    /// `fill(c, y, row)` writes image row `y` of channel `c` (`w` values) into `row`. Row by
-    /// row: the image's columns are written once, in place, and the border copied from them.
+    /// Pads rows `y0 - r .. y0 + rows + r` of `channels` planes of a `w` x `h` image into
+    /// `data` (a worker's buffer from an earlier band, or empty); `fill(c, y, row)` writes
+    /// image row `y` of channel `c` (`w` values) into `row`. Row by row: the image's columns
+    /// are written once, in place, and the border copied from them; every value is written, so
+    /// a reused buffer is neither cleared nor zeroed.
     pub(super) fn new(
+        mut data: Vec<f32>,
         channels: usize,
         (w, h): (usize, usize),
         r: usize,
@@ -31,7 +34,7 @@ impl Padded {
         fill: impl Fn(usize, usize, &mut [f32]),
     ) -> Result<Padded> {
         let (stride, padded_rows) = (w + 2 * r + LANES - 1, rows + 2 * r);
-        let mut data = try_vec(channels * padded_rows * stride, 0.0f32)?;
+        try_resize(&mut data, channels * padded_rows * stride, 0.0)?;
         for (row, out) in data.chunks_exact_mut(stride).enumerate() {
             let (c, py) = (row / padded_rows, row % padded_rows);
             let y = reflect((y0 + py) as isize - r as isize, h);
@@ -48,13 +51,14 @@ impl Padded {
     /// Pads rows of `channels` planes of `s` (plane after plane, `w * h` values each), as
     /// [`Padded::new`].
     pub(super) fn copy(
+        data: Vec<f32>,
         s: &[f32],
         channels: usize,
         (w, h): (usize, usize),
         r: usize,
         band: (usize, usize),
     ) -> Result<Padded> {
-        Padded::new(channels, (w, h), r, band, |c, y, row| {
+        Padded::new(data, channels, (w, h), r, band, |c, y, row| {
             row.copy_from_slice(&s[(c * h + y) * w..][..w]);
         })
     }
@@ -80,17 +84,25 @@ pub(super) struct Planes {
 }
 
 impl Planes {
-    pub(super) fn new(level: &QpLevel, band: (usize, usize)) -> Result<Planes> {
+    /// Pads the planes of `band` (its first row and its rows) of `level`, in buffers taken
+    /// from `spare` (those of the worker's previous band; new ones when it runs out).
+    pub(super) fn new(
+        level: &QpLevel,
+        band: (usize, usize),
+        spare: &mut Vec<Vec<f32>>,
+    ) -> Result<Planes> {
         let dims = level.img.size();
         let (n_px, r) = (dims.0 * dims.1, level.radius);
-        let plain = |img: &Image| Padded::copy(img.as_slice(), 3, dims, r, band);
+        let spare = std::cell::RefCell::new(spare);
+        let take = || spare.borrow_mut().pop().unwrap_or_default();
+        let plain = |img: &Image| Padded::copy(take(), img.as_slice(), 3, dims, r, band);
         let var = level.var.as_slice();
         let up_var = level.up.map(|(_, v)| v.as_slice());
         let w = dims.0;
         Ok(Planes {
             img: plain(level.img)?,
             var: plain(level.var)?,
-            v: Padded::new(1, dims, r, band, |_, y, row| {
+            v: Padded::new(take(), 1, dims, r, band, |_, y, row| {
                 for (x, vq) in row.iter_mut().enumerate() {
                     let q = y * w + x;
                     let mut sum = 0.0;
@@ -108,6 +120,17 @@ impl Planes {
             normal: level.normal.map(plain).transpose()?,
             up: level.up.map(|(u, _)| plain(u)).transpose()?,
         })
+    }
+
+    /// Gives the planes' buffers back to `spare`, for the worker's next band.
+    pub(super) fn recycle(self, spare: &mut Vec<Vec<f32>>) {
+        let optional = [self.albedo, self.normal, self.up];
+        let all = [self.img, self.var, self.v, self.enhanced];
+        spare.extend(
+            all.into_iter()
+                .chain(optional.into_iter().flatten())
+                .map(|p| p.data),
+        );
     }
 
     /// The bias terms whose input is present, in the release's order: those in the objective
@@ -191,6 +214,6 @@ pub(super) struct Term<'a> {
     pub(super) sq: F32x,
     /// Whether the term counts in the initial weights' costs (not one of weight 0).
     pub(super) counts: bool,
-    /// Whether the term has rows in the objective (false: dropped, see [`vanishing_terms`]).
+    /// Whether the term has rows in the objective (false: dropped, see [`vanishing_terms`](super::vanishing_terms)).
     pub(super) row: bool,
 }

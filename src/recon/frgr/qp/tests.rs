@@ -305,9 +305,11 @@ fn filter_equals_the_per_pixel_reference() {
         .build()
         .expect("pool");
     // (width, height, radius, features, finer level, converged mask, spp): K = 15, 12, 9, 6;
-    // term weights whose roots are powers of two or not.
+    // term weights whose roots are powers of two or not; one to three bands of rows, the last
+    // one short (a worker's padded buffers are reused from band to band, grown and shrunk).
     let cases = [
         (45, 31, 4, true, true, false, 16.0),
+        (37, 41, 3, true, true, true, 16.0),
         (45, 31, 4, true, false, true, 4.0),
         (33, 26, 3, false, true, true, 16.0),
         (29, 17, 4, false, false, false, 7.0),
