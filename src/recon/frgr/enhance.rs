@@ -9,7 +9,7 @@
 //! `a = 1 / (|D albedo|_1 + |D normal|_1 + 0.01)^2` and `lambda = 8 / sqrt(spp)`. There is no
 //! data term: early stopping and the start from the guide regularise the solve.
 //!
-//! [`enhance_reference`] is the release's schedule, literally: 1000 gradient-descent
+//! `enhance_reference` (the tests' entry point) is the release's schedule, literally: 1000 gradient-descent
 //! iterations with a step starting at 1e-4; the loss is checked at iterations below 20 and
 //! every 50th; when it rose above the best seen, the step halves and the image (and the best
 //! loss) revert to the start. One addition: the steps after the last check are checked too,
@@ -290,7 +290,8 @@ fn fused_steps(w: usize) -> usize {
 /// inputs are read once per pass while they are in cache. Each edge flux is computed once and
 /// shared by its two pixels. Bands of rows run in parallel, each recomputing a halo of
 /// `steps` rows, so results do not depend on the thread count; every value is computed with
-/// the same operations in the same order as [`descend`], so the result equals it bit for bit.
+/// the same operations in the same order as `descend` (the tests' literal step), so the result
+/// equals it bit for bit.
 pub(crate) struct Sweeper {
     w: usize,
     h: usize,
@@ -642,7 +643,7 @@ impl Sweeper {
         }
     }
 
-    /// One row of one step, with the same operations in the same order as [`descend`].
+    /// One row of one step, with the same operations in the same order as `descend`.
     #[allow(clippy::too_many_arguments)]
     fn row(
         &self,

@@ -77,7 +77,7 @@ impl<const K: usize> Simplex<'_, K> {
         (s, svw)
     }
 
-    /// [`Simplex::solve`] from its start (which must be `self.start(w)`, bit for bit).
+    /// `Simplex::solve` (the tests' entry point) from its start (which must be `self.start(w)`, bit for bit).
     #[inline(always)]
     pub fn solve_from<const FUSED: bool>(
         &self,
