@@ -25,6 +25,7 @@
 //! demo frame). Where the bound does not hold (the bound exceeds the step's limit), every step
 //! is taken, as before.
 
+use ndarray::Array3;
 use rayon::prelude::*;
 
 use crate::error::Result;
@@ -756,8 +757,8 @@ pub(crate) fn enhance_or_stop(
 ) -> Result<(Image, EnhanceOutcome)> {
     let (gx, gy) = (dx.as_slice(), dy.as_slice());
     let start = guide.as_slice();
-    // `out` holds the guide until the end (what a cancel returns).
-    let mut out = guide.try_clone()?;
+    // A cancel returns the guide.
+    let cancelled = || Ok((guide.try_clone()?, EnhanceOutcome::default()));
     let mut cur = try_zeroed_vec(start.len())?;
     cur.copy_from_slice(start);
     let mut next = try_zeroed_vec::<f32>(start.len())?;
@@ -779,7 +780,7 @@ pub(crate) fn enhance_or_stop(
             .flatten()
         {
             if !chebyshev::descend(&sweeper, &mut cur, &mut next, step, z_max, &c, stop) {
-                return Ok((out, EnhanceOutcome::default()));
+                return cancelled();
             }
             let l = sweeper.loss(&cur)?;
             if l.is_finite() && l <= best {
@@ -810,7 +811,7 @@ pub(crate) fn enhance_or_stop(
             todo -= steps;
         }
         if stop.stopped() {
-            return Ok((out, EnhanceOutcome::default()));
+            return cancelled();
         }
         it = last + 1;
         if let Some(l) = cur_loss {
@@ -841,9 +842,10 @@ pub(crate) fn enhance_or_stop(
         cur.copy_from_slice(start);
         loss_end = loss_start;
     }
-    out.as_mut_slice().copy_from_slice(&cur);
+    // The image is `cur` itself, not a copy.
+    let out = Array3::from_shape_vec(guide.planes().raw_dim(), cur).expect("the guide's shape");
     Ok((
-        out,
+        Image::from_planes(out),
         EnhanceOutcome {
             reverts,
             loss_start,
