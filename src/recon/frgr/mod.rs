@@ -322,12 +322,15 @@ impl Register for FrgrConfig {
 ///
 /// | configuration | 640 x 360 | 1280 x 720 | estimate |
 /// | --- | --- | --- | --- |
-/// | defaults (RDFC guide), `reference`, `fast`, `levels=1` | 248.8 B/px | 246.5 B/px | 320 B/px + 4 MiB |
-/// | `guide=l1` | 330.1 B/px | 329.7 B/px | 444 B/px + 5 MiB |
+/// | defaults (RDFC guide), `reference`, `levels=1` | 248.8 B/px | 246.5 B/px | 320 B/px + 4 MiB |
+/// | `fast` | 248.1 B/px | 246.2 B/px | 320 B/px + 4 MiB |
+/// | `guide=l1` | 321.7 B/px | 321.4 B/px | 444 B/px + 5 MiB |
 ///
-/// (Sixty-third session, RDFC's inputs padded once and its tiles written in place; before it
-/// 261.6 and 261.3 B/px with the RDFC guide. The table had said 256.6 / 256.3 and 296.1 for
-/// the L1 guide: later sessions had raised both without updating it.)
+/// (Sixty-fourth session, the enhancement without a copy of its guide and the QP's buffers
+/// per worker; before it `guide=l1` 330.1 / 329.7 and `fast` as the defaults. Sixty-third
+/// session, RDFC's inputs padded once and its tiles written in place; before it 261.6 and
+/// 261.3 B/px with the RDFC guide. The table had said 256.6 / 256.3 and 296.1 for the L1
+/// guide: later sessions had raised both without updating it.)
 ///
 /// Peak RSS of `gdrecon reconstruct -m frgr` on the demo bundle minus
 /// that of `gdrecon info` (the process and the frame as read) is 42 MiB at 640 x 360 (94512
