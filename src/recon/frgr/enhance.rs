@@ -9,13 +9,13 @@
 //! `a = 1 / (|D albedo|_1 + |D normal|_1 + 0.01)^2` and `lambda = 8 / sqrt(spp)`. There is no
 //! data term: early stopping and the start from the guide regularise the solve.
 //!
-//! `enhance_reference` (the tests' entry point) is the release's schedule, literally: 1000 gradient-descent
-//! iterations with a step starting at 1e-4; the loss is checked at iterations below 20 and
-//! every 50th; when it rose above the best seen, the step halves and the image (and the best
-//! loss) revert to the start. One addition: the steps after the last check are checked too,
-//! and if they raised the energy the result is the start (the release would return them).
-//! The energy is evaluated from the steps' own edge terms ([`edge_energy`]), in the pass that
-//! produces the image: it is the release's energy up to the f32 rounding of the weights.
+//! `enhance_reference` (the tests' entry point) is the release's schedule, literally: 1000
+//! gradient-descent iterations with a step starting at 1e-4; the loss is checked at iterations
+//! below 20 and every 50th; when it rose above the best seen, the step halves and the image (and
+//! the best loss) revert to the start. One addition: the steps after the last check are checked
+//! too, and if they raised the energy the result is the start (the release would return them). The
+//! energy is evaluated from the steps' own edge terms ([`edge_energy`]), in the pass that produces
+//! the image: it is the release's energy up to the f32 rounding of the weights.
 //!
 //! By default the steps after the last revert are not taken one by one: once the step is below
 //! Gershgorin's stability bound no revert can follow, and the remaining steps are one

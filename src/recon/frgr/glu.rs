@@ -83,8 +83,8 @@ impl Glu {
         Self::new_or_stop(j, &Progress::none()).expect("allocated")
     }
 
-    /// The fit to the guide `j` (even size), returning an unusable fit early once `stop` is cancelled (the caller
-    /// checks `stop`).
+    /// The fit to the guide `j` (even size); an unusable fit, returned early, once `stop` is
+    /// cancelled (the caller checks `stop`).
     pub fn new_or_stop(j: &Image, stop: &Progress) -> Result<Self> {
         let (w, h) = j.size();
         assert!(

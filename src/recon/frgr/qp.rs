@@ -145,26 +145,19 @@ fn filter_rows<const K: usize>(
 /// What a worker keeps from one band to its next: the scratch of a lane group and the padded
 /// planes' buffers (allocated once per worker, not per band; every value is written before it
 /// is read).
+#[derive(Default)]
 struct Worker<const K: usize> {
     scratch: Option<Scratch<K>>,
     spare: Vec<Vec<f32>>,
 }
 
-impl<const K: usize> Default for Worker<K> {
-    fn default() -> Self {
-        Worker {
-            scratch: None,
-            spare: Vec::new(),
-        }
-    }
-}
-
 /// Filters image rows `band * BAND ..` (at most [`BAND`] of them) into `rows` (those rows of the
-/// colour's planes, then of the variance's); returns the pixels skipped. Compiled for AVX-512 and AVX2 too,
-/// picked at run time: the whole solver is inlined into it, so its `F32x` arithmetic becomes
-/// 512-bit instructions (two registers per value) or 256-bit ones (four): independent chains
-/// that hide the latency of the solver's dependent steps (see [`LANES`]). Rust never contracts `a * b + c` on its own; the `madd`s fuse in both versions (they have FMA),
-/// so the two compute the same bits; the baseline version does not fuse.
+/// colour's planes, then of the variance's); returns the pixels skipped. Compiled for AVX-512 and
+/// AVX2 too, picked at run time: the whole solver is inlined into it, so its `F32x` arithmetic
+/// becomes 512-bit instructions (two registers per value) or 256-bit ones (four): independent
+/// chains that hide the latency of the solver's dependent steps (see [`LANES`]). Rust never
+/// contracts `a * b + c` on its own; the `madd`s fuse in both versions (they have FMA), so the two
+/// compute the same bits; the baseline version does not fuse.
 #[multiversion::multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
     "x86_64+avx2+fma"

@@ -84,8 +84,9 @@ pub(super) struct Planes {
 }
 
 impl Planes {
-    /// Pads the planes of `band` (its first row and its rows) of `level`, in buffers taken
-    /// from `spare` (those of the worker's previous band; new ones when it runs out).
+    /// Pads the planes of `band` (its first row and its number of rows) of `level`, in buffers
+    /// taken from `spare` (those of the worker's previous band, in the order of the fields
+    /// here; new ones when it runs out).
     pub(super) fn new(
         level: &QpLevel,
         band: (usize, usize),
@@ -122,15 +123,19 @@ impl Planes {
         })
     }
 
-    /// Gives the planes' buffers back to `spare`, for the worker's next band.
+    /// Gives the planes' buffers back to `spare`, for the worker's next band: in reverse, so
+    /// that [`Planes::new`] gives each plane the buffer it had (the same length: no fill).
     pub(super) fn recycle(self, spare: &mut Vec<Vec<f32>>) {
-        let optional = [self.albedo, self.normal, self.up];
-        let all = [self.img, self.var, self.v, self.enhanced];
-        spare.extend(
-            all.into_iter()
-                .chain(optional.into_iter().flatten())
-                .map(|p| p.data),
-        );
+        let planes = [
+            Some(self.img),
+            Some(self.var),
+            Some(self.v),
+            Some(self.enhanced),
+            self.albedo,
+            self.normal,
+            self.up,
+        ];
+        spare.extend(planes.into_iter().rev().flatten().map(|p| p.data));
     }
 
     /// The bias terms whose input is present, in the release's order: those in the objective

@@ -306,7 +306,7 @@ fn filter_equals_the_per_pixel_reference() {
         .expect("pool");
     // (width, height, radius, features, finer level, converged mask, spp): K = 15, 12, 9, 6;
     // term weights whose roots are powers of two or not; one to three bands of rows, the last
-    // one short (a worker's padded buffers are reused from band to band, grown and shrunk).
+    // one short (a worker's padded buffers are reused from band to band).
     let cases = [
         (45, 31, 4, true, true, false, 16.0),
         (37, 41, 3, true, true, true, 16.0),
