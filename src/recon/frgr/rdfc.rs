@@ -1008,14 +1008,24 @@ fn rdfc_with(
         .map(Feature::new)
         .collect::<Result<_>>()?;
     // Both filters read the colour, variance and features padded once (the selection's
-    // window is the narrower); a reference implementation (tests) takes the images.
-    let inputs = Inputs::new(colour, var, &features, radius.max(SELECTION_RADIUS))?;
-    let nlm = |data: Option<&Image>, radius: usize, candidates: &[Candidate]| {
-        if let Some(reference) = reference {
-            let data = data.unwrap_or(colour);
-            return reference(colour, var, &features, data, radius, candidates, stop);
+    // window is the narrower); a reference implementation (tests) takes the images instead.
+    enum Filters {
+        Own(Inputs),
+        Reference(NlmFn),
+    }
+    let filters = match reference {
+        None => {
+            let pad = radius.max(SELECTION_RADIUS);
+            Filters::Own(Inputs::new(colour, var, &features, pad)?)
         }
-        filter(&inputs, data, radius, candidates, stop)
+        Some(reference) => Filters::Reference(reference),
+    };
+    let nlm = |data: Option<&Image>, radius: usize, candidates: &[Candidate]| match &filters {
+        Filters::Own(inputs) => filter(inputs, data, radius, candidates, stop),
+        Filters::Reference(reference) => {
+            let data = data.unwrap_or(colour);
+            reference(colour, var, &features, data, radius, candidates, stop)
+        }
     };
     let filtered = nlm(None, radius, &CANDIDATES)?;
     if stop.stopped() {

@@ -160,7 +160,6 @@ fn synthetic(w: usize, h: usize) -> (Image, Image, Image, Image) {
     (colour, var, albedo, normal)
 }
 
-/// Largest `|a - b| / max(|b|, floor)` over the two images.
 /// RDFC of [`synthetic`]'s images over windows of `radius`: its own filters (`None`), or
 /// `reference` given the images at each call.
 fn rdfc_of(
@@ -182,6 +181,12 @@ fn rdfc_of(
     .unwrap()
 }
 
+/// The values' bits, for comparisons that must be exact.
+fn bits(v: &[f32]) -> Vec<u32> {
+    v.iter().map(|x| x.to_bits()).collect()
+}
+
+/// Largest `|a - b| / max(|b|, floor)` over the two images.
 fn max_rel(a: &Image, b: &Image, floor: f32) -> f32 {
     a.as_slice()
         .iter()
@@ -268,13 +273,11 @@ fn rdfc_on_inputs_padded_once_equals_padding_per_filter_bit_for_bit() {
         for radius in [2, 4, RADIUS] {
             let run = |reference| rdfc_of(&images, radius, reference);
             let (once, each) = (run(None), run(Some(nlm_candidates)));
-            let bits = |img: &Image| {
-                img.as_slice()
-                    .iter()
-                    .map(|v| v.to_bits())
-                    .collect::<Vec<_>>()
-            };
-            assert_eq!(bits(&once), bits(&each), "{w} x {h}, radius {radius}");
+            assert_eq!(
+                bits(once.as_slice()),
+                bits(each.as_slice()),
+                "{w} x {h}, radius {radius}"
+            );
         }
     }
 }
@@ -597,7 +600,6 @@ fn paired_kernels_equal_the_single_offset_ones_bit_for_bit() {
             (refs(&cp), refs(&vp)),
             [(refs(&cq0), refs(&vq0)), (refs(&cq1), refs(&vq1))],
         );
-        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&one0), bits(&two0), "colour, offset 0, {n} pixels");
         assert_eq!(bits(&one1), bits(&two1), "colour, offset 1, {n} pixels");
         // Feature distance: two features, their normalisers, two offsets' rows.
